@@ -1,0 +1,85 @@
+"""The ``dronecap`` command line: a table of sub-commands, each imported only when it runs.
+
+Each entry names a module in :mod:`dronecap.commands` that defines
+
+    HELP: str                                    one-line description
+    add_arguments(parser: ArgumentParser) -> None
+    run(args: Namespace) -> int                  exit code
+
+Command modules import only the standard library at module level, so ``dronecap --help`` stays
+fast; torch, pycolmap, open3d and Flower are imported inside ``run``. An :class:`InputError`
+raised anywhere becomes one line on stderr and exit code 1; Ctrl-C exits with 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, one-line help). The help is repeated here so `--help` imports nothing.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "simulate": ("simulate", "render a synthetic nano-drone flight video with ground truth"),
+    "ingest": ("ingest", "decode a flight video to 160x160 gray, select frames -> frames.h5"),
+    "sfm": ("sfm", "recover camera poses with COLMAP, normalise and bound -> posed.h5"),
+    "split": ("split", "train/test split of a posed flight -> dataset.h5"),
+    "shard": ("shard", "IID or viewpoint-sector shards, one file per drone -> shards/"),
+    "import-blender": ("import_blender", "NeRF Synthetic 360 scene -> dataset.h5"),
+    "export-transforms": ("export_transforms", "dataset -> transforms.json + images"),
+    "train": ("train", "train Tiny-DroNeRF on a dataset -> run dir"),
+    "render": ("render", "render views (test poses or an orbit) of a trained run"),
+    "eval": ("eval", "re-evaluate a trained run on its test views (PSNR/SSIM)"),
+    "cost": ("cost", "GAP9 memory/compute/latency/energy report for a configuration"),
+    "federate": ("federate", "FedAvg across drones on Flower"),
+    "run": ("run", "run a pipeline from pipelines.yaml with caching"),
+}
+
+
+def _top_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="dronecap",
+        description="Nano-drone captures to 3D scene reconstructions.",
+        epilog="Run `dronecap COMMAND --help` for a command's options.",
+    )
+    p.add_argument("--version", action="version", version="dronecap 0.1.0")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, help_) in COMMANDS.items():
+        sub.add_parser(name, help=help_, add_help=False)
+    return p
+
+
+def build_parser(name: str) -> tuple[argparse.ArgumentParser, object]:
+    """The full parser of one sub-command and its module (imports that module)."""
+    module = importlib.import_module(f"dronecap.commands.{COMMANDS[name][0]}")
+    p = argparse.ArgumentParser(prog=f"dronecap {name}", description=module.HELP)
+    p.add_argument(
+        "--workdir",
+        default=".",
+        help="workspace folder where inputs/outputs are found by conventional names (default: .)",
+    )
+    module.add_arguments(p)
+    return p, module
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the console script; returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] not in COMMANDS:
+        _top_parser().parse_args(argv or ["--help"])
+        return 2
+    from dronecap.errors import InputError
+
+    parser, module = build_parser(argv[0])
+    args = parser.parse_args(argv[1:])
+    try:
+        return int(module.run(args) or 0)
+    except InputError as err:
+        print(f"dronecap {argv[0]}: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"dronecap {argv[0]}: interrupted (outputs written so far are complete)", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
