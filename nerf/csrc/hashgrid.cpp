@@ -1,0 +1,216 @@
+// Multiresolution hash encoding (Instant-NGP) forward and backward kernels for the CPU.
+//
+// Follows nerf/hashgrid.py's conventions exactly (see its module docstring): positions clamped
+// to [0,1] (NaN -> 0), p = x * res with no +0.5 offset, cell = min(floor(p), res - 1), dense
+// index c0 + c1 (res+1) + c2 (res+1)^2 when (res+1)^3 <= T, otherwise the xor-of-primes hash in
+// uint32 arithmetic masked to T - 1 (equal to the int64 reference because T is a power of two).
+// Output [N, L*F] level-major. Table and gradients are float32.
+//
+// Parallelism: forward splits (level, block of points) pairs over OpenMP threads. Backward
+// scatters into the table; the default splits the work by level, so each thread owns whole
+// disjoint slices of the gradient table and no two threads ever write the same row (race-free
+// without atomics). Two alternatives, kept for the benchmark that chose the default, split by
+// points instead and resolve races with atomics or with per-thread partial tables.
+#include <torch/extension.h>
+
+#include <ATen/Parallel.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+namespace {
+
+constexpr uint32_t kPrime1 = 2654435761u;
+constexpr uint32_t kPrime2 = 805459861u;
+constexpr int64_t kBlock = 1024;  // points per forward work item
+
+struct Level {
+  float scale;       // res, as float
+  float max_cell;    // res - 1
+  uint32_t stride;   // res + 1 (dense levels)
+  uint32_t mask;     // rows - 1 (hashed levels; rows is a power of two)
+  bool dense;
+  int64_t offset;    // first table row of the level
+};
+
+std::vector<Level> make_levels(const std::vector<int64_t>& resolutions,
+                               const std::vector<int64_t>& offsets, int64_t log2_hashmap) {
+  TORCH_CHECK(offsets.size() == resolutions.size() + 1, "offsets must have levels + 1 entries");
+  const int64_t max_rows = int64_t(1) << log2_hashmap;
+  std::vector<Level> levels;
+  for (size_t l = 0; l < resolutions.size(); ++l) {
+    const int64_t res = resolutions[l];
+    const int64_t rows = offsets[l + 1] - offsets[l];
+    const bool dense = (res + 1) * (res + 1) * (res + 1) <= max_rows;
+    TORCH_CHECK(res >= 1, "resolutions must be >= 1");
+    TORCH_CHECK(dense ? rows == (res + 1) * (res + 1) * (res + 1) : rows == max_rows,
+                "level ", l, " has ", rows, " rows, inconsistent with its resolution");
+    levels.push_back({float(res), float(res - 1), uint32_t(res + 1), uint32_t(rows - 1), dense,
+                      offsets[l]});
+  }
+  return levels;
+}
+
+// The 8 corner rows (relative to the level's offset) and trilinear weights of one point.
+inline void corners(const float* p, const Level& lv, uint32_t idx[8], float w[8]) {
+  uint32_t c[3];
+  float f[3];
+  for (int k = 0; k < 3; ++k) {
+    const float x = std::fmin(std::fmax(p[k], 0.0f), 1.0f);  // fmax(NaN, 0) = 0
+    const float pos = x * lv.scale;
+    const float cell = std::fmin(std::floor(pos), lv.max_cell);
+    f[k] = pos - cell;
+    c[k] = uint32_t(cell);
+  }
+  for (int i = 0; i < 8; ++i) {
+    const uint32_t a = c[0] + (i & 1), b = c[1] + ((i >> 1) & 1), d = c[2] + ((i >> 2) & 1);
+    idx[i] = lv.dense ? a + lv.stride * (b + lv.stride * d)
+                      : (a ^ (b * kPrime1) ^ (d * kPrime2)) & lv.mask;
+    const float wx = (i & 1) ? f[0] : 1.0f - f[0];
+    const float wy = (i & 2) ? f[1] : 1.0f - f[1];
+    const float wz = (i & 4) ? f[2] : 1.0f - f[2];
+    w[i] = wx * wy * wz;
+  }
+}
+
+template <int F>
+void forward_range(const float* x, const float* table, float* out, int64_t n0, int64_t n1,
+                   const Level& lv, int64_t l, int64_t out_dim, int64_t f_rt) {
+  const int64_t nf = F > 0 ? F : f_rt;
+  const float* tl = table + lv.offset * nf;
+  uint32_t idx[8];
+  float w[8];
+  for (int64_t n = n0; n < n1; ++n) {
+    corners(x + 3 * n, lv, idx, w);
+    float* o = out + n * out_dim + l * nf;
+    for (int64_t f = 0; f < nf; ++f) {
+      float acc = 0.0f;
+      for (int i = 0; i < 8; ++i) acc += w[i] * tl[int64_t(idx[i]) * nf + f];
+      o[f] = acc;
+    }
+  }
+}
+
+template <int F>
+void backward_range(const float* x, const float* grad_out, float* grad, int64_t n0, int64_t n1,
+                    const Level& lv, int64_t l, int64_t out_dim, int64_t f_rt, bool atomic) {
+  const int64_t nf = F > 0 ? F : f_rt;
+  float* gl = grad + lv.offset * nf;
+  uint32_t idx[8];
+  float w[8];
+  for (int64_t n = n0; n < n1; ++n) {
+    corners(x + 3 * n, lv, idx, w);
+    const float* g = grad_out + n * out_dim + l * nf;
+    for (int i = 0; i < 8; ++i) {
+      float* row = gl + int64_t(idx[i]) * nf;
+      for (int64_t f = 0; f < nf; ++f) {
+        const float v = w[i] * g[f];
+        if (atomic) {
+#pragma omp atomic
+          row[f] += v;
+        } else {
+          row[f] += v;
+        }
+      }
+    }
+  }
+}
+
+void check_inputs(const torch::Tensor& x, const torch::Tensor& table) {
+  TORCH_CHECK(x.device().is_cpu() && table.device().is_cpu(), "CPU tensors expected");
+  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32 &&
+                  x.is_contiguous(),
+              "x must be a contiguous float32 [N, 3] tensor");
+  TORCH_CHECK(table.dim() == 2 && table.scalar_type() == torch::kFloat32 && table.is_contiguous(),
+              "table must be a contiguous float32 [rows, F] tensor");
+}
+
+#define DISPATCH_F(nf, FN, ...)     \
+  switch (nf) {                     \
+    case 1: FN<1>(__VA_ARGS__); break; \
+    case 2: FN<2>(__VA_ARGS__); break; \
+    case 4: FN<4>(__VA_ARGS__); break; \
+    case 8: FN<8>(__VA_ARGS__); break; \
+    default: FN<0>(__VA_ARGS__); break; \
+  }
+
+}  // namespace
+
+torch::Tensor hash_forward(torch::Tensor x, torch::Tensor table, std::vector<int64_t> resolutions,
+                           std::vector<int64_t> offsets, int64_t log2_hashmap) {
+  check_inputs(x, table);
+  const auto levels = make_levels(resolutions, offsets, log2_hashmap);
+  TORCH_CHECK(table.size(0) == offsets.back(), "table has ", table.size(0), " rows, expected ",
+              offsets.back());
+  const int64_t n = x.size(0), nf = table.size(1), nl = int64_t(levels.size());
+  const int64_t out_dim = nl * nf;
+  auto out = torch::empty({n, out_dim}, x.options());
+  const float* xp = x.data_ptr<float>();
+  const float* tp = table.data_ptr<float>();
+  float* op = out.data_ptr<float>();
+  const int64_t blocks = (n + kBlock - 1) / kBlock;
+  const int64_t items = blocks * nl;
+#pragma omp parallel for schedule(static) num_threads(at::get_num_threads())
+  for (int64_t item = 0; item < items; ++item) {
+    const int64_t l = item / blocks, b = item % blocks;
+    const int64_t n0 = b * kBlock, n1 = std::min(n, n0 + kBlock);
+    DISPATCH_F(nf, forward_range, xp, tp, op, n0, n1, levels[l], l, out_dim, nf);
+  }
+  return out;
+}
+
+// mode 0: split by level (default, race-free); 1: split by points with atomics;
+// 2: split by points into per-thread partial tables, summed at the end.
+torch::Tensor hash_backward(torch::Tensor grad_out, torch::Tensor x, int64_t rows, int64_t nf,
+                            std::vector<int64_t> resolutions, std::vector<int64_t> offsets,
+                            int64_t log2_hashmap, int64_t mode) {
+  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32 &&
+                  x.is_contiguous(), "x must be a contiguous float32 [N, 3] tensor");
+  const auto levels = make_levels(resolutions, offsets, log2_hashmap);
+  const int64_t n = x.size(0), nl = int64_t(levels.size()), out_dim = nl * nf;
+  TORCH_CHECK(grad_out.scalar_type() == torch::kFloat32 && grad_out.is_contiguous() &&
+                  grad_out.size(0) == n && grad_out.size(1) == out_dim,
+              "grad_out must be a contiguous float32 [N, L*F] tensor");
+  TORCH_CHECK(rows == offsets.back(), "rows inconsistent with offsets");
+  const float* xp = x.data_ptr<float>();
+  const float* gp = grad_out.data_ptr<float>();
+  const int nt = at::get_num_threads();
+  auto grad = torch::zeros({rows, nf}, x.options());
+  float* grad_p = grad.data_ptr<float>();
+  if (mode == 0) {
+#pragma omp parallel for schedule(static, 1) num_threads(nt)
+    for (int64_t l = 0; l < nl; ++l) {
+      DISPATCH_F(nf, backward_range, xp, gp, grad_p, 0, n, levels[l], l, out_dim, nf, false);
+    }
+  } else if (mode == 1) {
+#pragma omp parallel for schedule(static) num_threads(nt)
+    for (int64_t b = 0; b < nt; ++b) {
+      const int64_t n0 = n * b / nt, n1 = n * (b + 1) / nt;
+      for (int64_t l = 0; l < nl; ++l) {
+        DISPATCH_F(nf, backward_range, xp, gp, grad_p, n0, n1, levels[l], l, out_dim, nf, true);
+      }
+    }
+  } else {
+    TORCH_CHECK(mode == 2, "unknown backward mode ", mode);
+    auto partial = torch::zeros({nt - 1, rows, nf}, x.options());
+    float* pp = partial.data_ptr<float>();
+#pragma omp parallel for schedule(static) num_threads(nt)
+    for (int64_t b = 0; b < nt; ++b) {
+      const int64_t n0 = n * b / nt, n1 = n * (b + 1) / nt;
+      float* dst = b == 0 ? grad_p : pp + (b - 1) * rows * nf;
+      for (int64_t l = 0; l < nl; ++l) {
+        DISPATCH_F(nf, backward_range, xp, gp, dst, n0, n1, levels[l], l, out_dim, nf, false);
+      }
+    }
+    if (nt > 1) grad += partial.sum(0);
+  }
+  return grad;
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &hash_forward, "hash encoding forward: (x [N,3], table [R,F], ...) -> [N, L*F]");
+  m.def("backward", &hash_backward, "hash encoding backward: scatter-add of grad_out into the table");
+}

@@ -1,0 +1,301 @@
+"""Multiresolution hash encoding (Instant-NGP) with a slow reference and a fast C++ kernel.
+
+Conventions (the C++ kernel in ``csrc/hashgrid.cpp`` follows the same ones exactly):
+
+- Level ``l`` has ``res_l = floor(n_min * b**l)`` cells per axis, ``b = exp(ln(n_max/n_min)/(L-1))``
+  (``b = 1`` for one level); its corner grid has ``res_l + 1`` points per axis.
+- A point ``x`` in ``[0, 1]^3`` (coordinates outside are clamped, NaN counts as 0) is scaled to
+  ``p = x * res_l`` with **no** +0.5 offset, so the faces ``x = 0`` and ``x = 1`` fall exactly on
+  grid corners. Its cell is ``i = min(floor(p), res_l - 1)`` per axis (so ``x = 1`` lies in the
+  last cell with weight 1 on the far corner) and its weights are the trilinear ones of
+  ``f = p - i``.
+- Corner ``c`` of level ``l`` reads row ``offsets[l] + index(c)`` of ``table``:
+  dense ``c0 + c1 (res+1) + c2 (res+1)^2`` when ``(res+1)^3 <= T = 2**log2_hashmap``, else the
+  spatial hash ``(c0 * 1 ^ c1 * 2654435761 ^ c2 * 805459861) mod T`` (int64 here; the C++ kernel
+  uses uint32 wrap-around, which gives the same result because ``T`` is a power of two).
+- Output ``[N, L * F]``, level-major: columns ``l*F:(l+1)*F`` hold level ``l``.
+
+Low-precision storage (``dtype=torch.float16`` / ``torch.bfloat16``) is emulated: the parameter
+stays a float32 master copy, the encoding reads it rounded to ``dtype`` (straight-through
+gradient), and :meth:`HashGrid.round_storage_` rounds the master in place (call it after each
+optimizer step to emulate pure low-precision storage, where updates below half an ulp are lost).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+PRIMES = (1, 2654435761, 805459861)
+BACKENDS = ("auto", "cpp", "compile", "torch")
+
+
+def level_resolutions(levels: int, n_min: int, n_max: int) -> list[int]:
+    """Cells per axis of each level: ``floor(n_min * b**l)``, geometric from n_min to n_max.
+
+    A relative guard of 1e-9 keeps ``n_min * b**(L-1)`` from rounding down to ``n_max - 1``.
+    """
+    if levels < 1 or n_min < 1 or n_max < n_min:
+        raise ValueError(
+            f"need levels >= 1 and 1 <= n_min <= n_max, got {levels}, {n_min}, {n_max}"
+        )
+    b = math.exp(math.log(n_max / n_min) / (levels - 1)) if levels > 1 else 1.0
+    return [int(math.floor(n_min * b**lvl * (1 + 1e-9))) for lvl in range(levels)]
+
+
+def level_offsets(resolutions: Sequence[int], log2_hashmap: int) -> list[int]:
+    """Start row of each level in the table (``len = levels + 1``, last = total rows).
+
+    Level ``l`` uses ``min(2**log2_hashmap, (res_l + 1)**3)`` rows.
+    """
+    offsets = [0]
+    for res in resolutions:
+        offsets.append(offsets[-1] + min(1 << log2_hashmap, (res + 1) ** 3))
+    return offsets
+
+
+def _corner_bits(device: torch.device) -> Tensor:
+    """The 8 cell corners as 0/1 offsets, shape [8, 3] int64 (bit k of the corner id = axis k)."""
+    ids = torch.arange(8, device=device)
+    return torch.stack([(ids >> k) & 1 for k in range(3)], dim=-1)
+
+
+def _clamp_unit(x: Tensor) -> Tensor:
+    """Float32 positions clamped to [0, 1]^3; NaN -> 0, +inf -> 1, -inf -> 0. Shape kept."""
+    return torch.nan_to_num(x.float(), nan=0.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
+
+
+def hash_encode_reference(
+    x: Tensor,
+    table: Tensor,
+    resolutions: Sequence[int],
+    offsets: Sequence[int],
+    log2_hashmap: int,
+) -> Tensor:
+    """The slow, obvious hash encoding: trilinear blend of 8 gathered corners per level.
+
+    Args:
+        x: [N, 3] positions in the unit cube (clamped; NaN -> 0).
+        table: [offsets[-1], F] feature rows (any float dtype; math in float32).
+        resolutions: cells per axis of each level (L values).
+        offsets: start row of each level, L + 1 values.
+        log2_hashmap: log2 of T, the maximum rows per level.
+    Returns:
+        [N, L * F] float32 features, level-major. Differentiable w.r.t. ``table`` only.
+    """
+    x = _clamp_unit(x)
+    table = table.float()
+    bits = _corner_bits(x.device)  # [8, 3]
+    primes = torch.tensor(PRIMES, dtype=torch.int64, device=x.device)
+    max_rows = 1 << log2_hashmap
+    out = []
+    for lvl, res in enumerate(resolutions):
+        pos = x * res
+        cell = pos.floor().clamp(max=res - 1)
+        frac = pos - cell  # [N, 3] in [0, 1]
+        corner = cell.long()[:, None, :] + bits  # [N, 8, 3]
+        if (res + 1) ** 3 <= max_rows:
+            index = corner[..., 0] + corner[..., 1] * (res + 1) + corner[..., 2] * (res + 1) ** 2
+        else:
+            h = corner * primes
+            index = (h[..., 0] ^ h[..., 1] ^ h[..., 2]) % (offsets[lvl + 1] - offsets[lvl])
+        weight = torch.where(bits.bool(), frac[:, None, :], 1.0 - frac[:, None, :]).prod(-1)
+        rows = table[offsets[lvl] + index]  # [N, 8, F]
+        out.append((weight[..., None] * rows).sum(dim=1))
+    return torch.cat(out, dim=-1)
+
+
+class _RoundTo(torch.autograd.Function):
+    """Round a tensor to a storage dtype and back to float32; straight-through gradient."""
+
+    @staticmethod
+    def forward(ctx, t: Tensor, dtype: torch.dtype) -> Tensor:  # noqa: D102
+        return t.to(dtype).float()
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # noqa: D102
+        return grad, None
+
+
+_warned: set[str] = set()
+
+
+def _warn_once(message: str) -> None:
+    """Emit ``message`` as a RuntimeWarning the first time it is seen in this process."""
+    if message not in _warned:
+        _warned.add(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+
+class HashGrid(torch.nn.Module):
+    """Instant-NGP multiresolution hash encoding of points in the unit cube.
+
+    Args:
+        levels: L, number of resolution levels.
+        features: F, features per level and table row.
+        log2_hashmap: log2 of T, the maximum rows per level.
+        n_min, n_max: cells per axis of the coarsest and finest levels.
+        backend: "auto" (C++ kernel, falling back to "torch" with a one-time warning), "cpp",
+            "compile" (torch.compile of the reference) or "torch" (the reference).
+        dtype: storage precision of the table (float32, float16 or bfloat16; emulated, see the
+            module docstring).
+    """
+
+    def __init__(
+        self,
+        levels: int,
+        features: int,
+        log2_hashmap: int,
+        n_min: int,
+        n_max: int,
+        backend: str = "auto",
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        super().__init__()
+        if backend not in BACKENDS:
+            raise ValueError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
+        if dtype not in (torch.float32, torch.float16, torch.bfloat16):
+            raise ValueError(f"dtype must be float32, float16 or bfloat16, got {dtype}")
+        self.levels = levels
+        self.features = features
+        self.log2_hashmap = log2_hashmap
+        self.resolutions = level_resolutions(levels, n_min, n_max)
+        self.offsets = level_offsets(self.resolutions, log2_hashmap)
+        self.out_dim = levels * features
+        self.dtype = dtype
+        self.backend = backend
+        table = torch.empty(self.offsets[-1], features).uniform_(-1e-4, 1e-4)
+        self.table = torch.nn.Parameter(table)
+        self._encode = None  # resolved lazily on first forward
+
+    def _resolve(self):
+        """Pick the encoding function for ``self.backend`` (compiling the C++ kernel if needed)."""
+        if self.backend in ("auto", "cpp"):
+            try:
+                load_extension()
+                return hash_encode_cpp
+            except Exception as err:  # a compiler or build failure of any kind
+                if self.backend == "cpp":
+                    raise
+                _warn_once(f"hash grid C++ kernel unavailable ({err}); using the PyTorch reference")
+                return hash_encode_reference
+        if self.backend == "compile":
+            return _compiled_reference()
+        return hash_encode_reference
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Encode ``x`` [N, 3] (unit cube, clamped) into [N, levels * features] float32."""
+        if self._encode is None:
+            self._encode = self._resolve()
+        table = (
+            self.table if self.dtype == torch.float32 else _RoundTo.apply(self.table, self.dtype)
+        )
+        return self._encode(x, table, self.resolutions, self.offsets, self.log2_hashmap)
+
+    @torch.no_grad()
+    def round_storage_(self) -> None:
+        """Round the float32 master table in place to the storage dtype (no-op for float32)."""
+        if self.dtype != torch.float32:
+            self.table.copy_(self.table.to(self.dtype).float())
+
+    def extra_repr(self) -> str:  # noqa: D102
+        return (
+            f"levels={self.levels}, features={self.features}, log2_hashmap={self.log2_hashmap}, "
+            f"resolutions={self.resolutions[0]}..{self.resolutions[-1]}, backend={self.backend}, "
+            f"dtype={self.dtype}"
+        )
+
+
+def extension_build_dir() -> Path:
+    """Where the compiled C++ kernel is cached: ``$XDG_CACHE_HOME/dronecap/torch_extensions``."""
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return cache / "dronecap" / "torch_extensions" / "hashgrid"
+
+
+_EXTENSION = None
+
+
+def load_extension():
+    """Compile (once, ~30-60 s, cached on disk) and import the C++/OpenMP kernel module.
+
+    Raises whatever the compiler or loader raises when the kernel cannot be built.
+    """
+    global _EXTENSION
+    if _EXTENSION is None:
+        from torch.utils import cpp_extension  # noqa: PLC0415
+
+        build_dir = extension_build_dir()
+        build_dir.mkdir(parents=True, exist_ok=True)
+        flags = ["-O3", "-march=native", "-fopenmp"]
+        _EXTENSION = cpp_extension.load(
+            name="dronecap_hashgrid",
+            sources=[str(Path(__file__).parent / "csrc" / "hashgrid.cpp")],
+            extra_cflags=flags,
+            extra_ldflags=["-fopenmp"],
+            build_directory=str(build_dir),
+            verbose=False,
+        )
+    return _EXTENSION
+
+
+BACKWARD_MODES = {"level": 0, "atomic": 1, "partial": 2}
+
+
+class _CppEncode(torch.autograd.Function):
+    """Autograd wrapper of the C++ kernels; gradient w.r.t. the table only."""
+
+    @staticmethod
+    def forward(ctx, x, table, resolutions, offsets, log2_hashmap, mode):  # noqa: D102
+        ext = load_extension()
+        x = _clamp_unit(x).contiguous()
+        ctx.save_for_backward(x)
+        ctx.args = (table.shape[0], table.shape[1], resolutions, offsets, log2_hashmap, mode)
+        return ext.forward(x, table.contiguous(), resolutions, offsets, log2_hashmap)
+
+    @staticmethod
+    def backward(ctx, grad_out):  # noqa: D102
+        (x,) = ctx.saved_tensors
+        grad = None
+        if ctx.needs_input_grad[1]:
+            grad = load_extension().backward(grad_out.float().contiguous(), x, *ctx.args)
+        return None, grad, None, None, None, None
+
+
+def hash_encode_cpp(
+    x: Tensor,
+    table: Tensor,
+    resolutions: Sequence[int],
+    offsets: Sequence[int],
+    log2_hashmap: int,
+    backward_mode: str = "level",
+) -> Tensor:
+    """The C++/OpenMP hash encoding; same arguments, result and gradient as the reference.
+
+    Args:
+        x: [N, 3] positions in the unit cube (clamped; NaN -> 0).
+        table: [offsets[-1], F] float32 rows.
+        resolutions, offsets, log2_hashmap: as in :func:`hash_encode_reference`.
+        backward_mode: how threads share the gradient scatter: "level" (each thread owns whole
+            levels; the default, race-free), "atomic" or "partial" (per-thread tables).
+    Returns:
+        [N, L * F] float32, differentiable w.r.t. ``table``.
+    """
+    mode = BACKWARD_MODES[backward_mode]
+    return _CppEncode.apply(x, table.float(), list(resolutions), list(offsets), log2_hashmap, mode)
+
+
+_COMPILED = None
+
+
+def _compiled_reference():
+    """``torch.compile`` of :func:`hash_encode_reference` (built once per process)."""
+    global _COMPILED
+    if _COMPILED is None:
+        _COMPILED = torch.compile(hash_encode_reference, dynamic=False)
+    return _COMPILED
