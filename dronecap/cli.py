@@ -77,7 +77,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"dronecap {argv[0]}: error: {err}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"dronecap {argv[0]}: interrupted (outputs written so far are complete)", file=sys.stderr)
+        print(
+            f"dronecap {argv[0]}: interrupted (outputs written so far are complete)",
+            file=sys.stderr,
+        )
         return 130
 
 

@@ -1,0 +1,89 @@
+"""The key figure of each stage, read from the files the stage wrote (for summaries/reports).
+
+Each reader is forgiving: a stage whose output lacks the expected file yields "" rather than an
+error, since the figure is a convenience, not part of the stage's contract.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+
+def _json(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return {}
+
+
+def _find(stage_dir: Path, name: str) -> Path:
+    """``stage_dir/name``, or the first file of that name below it."""
+    direct = stage_dir / name
+    return direct if direct.exists() else next(iter(sorted(stage_dir.rglob(name))), direct)
+
+
+def _h5_frames(stage_dir: Path, name: str) -> str:
+    import h5py
+
+    path = _find(stage_dir, name)
+    if not path.exists():
+        return ""
+    with h5py.File(path, "r") as f:
+        return f"{f['images'].shape[0]} frames"
+
+
+def _ingest(stage_dir: Path) -> str:
+    return _h5_frames(stage_dir, "frames.h5") + " kept"
+
+
+def _sfm(stage_dir: Path) -> str:
+    rep = _json(_find(stage_dir, "report.json"))
+    if not rep:
+        return ""
+    reg = rep.get("registration_rate")
+    text = f"registered {reg:.0%}" if isinstance(reg, float) else ""
+    gt = rep.get("gt") or rep.get("accuracy") or {}
+    if "ate_percent" in gt:
+        text += f", ATE {gt['ate_percent']:.2f}% of extent"
+    if "rot_err_median_deg" in gt:
+        text += f", rot {gt['rot_err_median_deg']:.2f}° median"
+    return text
+
+
+def _train(stage_dir: Path) -> str:
+    m = _json(_find(stage_dir, "metrics.json"))
+    text = f"PSNR {m['psnr']:.2f} dB, SSIM {m.get('ssim', float('nan')):.3f}" if "psnr" in m else ""
+    cost = _json(_find(stage_dir, "cost.json"))
+    verdict = cost.get("verdict") or cost.get("fits")
+    if verdict is not None:
+        text += f", GAP9: {verdict}"
+    return text
+
+
+def _federate(stage_dir: Path) -> str:
+    rounds = _json(_find(stage_dir, "rounds.json"))
+    last = (rounds.get("rounds") or [{}])[-1] if isinstance(rounds, dict) else {}
+    return f"global PSNR {last['psnr']:.2f} dB" if "psnr" in last else ""
+
+
+FIGURES: dict[str, Callable[[Path], str]] = {
+    "ingest": _ingest,
+    "sfm": _sfm,
+    "split": lambda d: _h5_frames(d, "dataset.h5"),
+    "import-blender": lambda d: _h5_frames(d, "dataset.h5"),
+    "shard": lambda d: f"{len(list(d.rglob('client_*.h5')))} shards",
+    "train": _train,
+    "federate": _federate,
+}
+
+
+def key_figure(command: str, stage_dir: Path) -> str:
+    """One short text with the stage's headline number ("" when there is none)."""
+    reader = FIGURES.get(command)
+    try:
+        return reader(stage_dir) if reader else ""
+    except (OSError, KeyError, TypeError, ValueError):
+        return ""

@@ -1,0 +1,242 @@
+"""The pipeline runner: run a validated pipeline's stages in order, with caching.
+
+Each stage runs the ``dronecap`` command it names, in-process, with ``--workdir
+runs/<pipeline>/<stage>`` so that its outputs land in its own folder. Beside them the runner
+keeps a stamp, ``.dronecap-stage.json``: the cache key (a hash of the command line and of the
+content of every input file), the parameters, the inputs' hashes, the time taken and the key
+figure. A stage is skipped when its key matches a completed stamp, like ``dvc repro``.
+
+A stage that was interrupted leaves a "running" stamp with its key: run again with the same
+key, it keeps its folder so that a resumable command (``train``) continues from its checkpoint;
+with another key the folder is cleared first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from dronecap.errors import InputError
+from dronecap.files import atomic_output, sha256_file
+from dronecap.pipeline_spec import Pipeline, Stage, substitute
+
+STAMP = ".dronecap-stage.json"
+
+
+@dataclass
+class StageResult:
+    """What happened to one stage."""
+
+    id: str
+    status: str  # "ran", "cached", "would run", "failed", "skipped"
+    why: str
+    seconds: float = 0.0
+    figure: str = ""
+
+
+def stage_argv(stage: Stage, parser: argparse.ArgumentParser, params: dict[str, Any]) -> list[str]:
+    """The command line (after the command name) that runs ``stage`` with resolved ``params``."""
+    actions = {a.dest: a for a in parser._actions}
+    positional: list[tuple[int, list[str]]] = []
+    options: list[str] = []
+    order = [a.dest for a in parser._actions if not a.option_strings]
+    for key, value in params.items():
+        action = actions[key]
+        values = [str(v) for v in (value if isinstance(value, list) else [value])]
+        if not action.option_strings:
+            positional.append((order.index(key), values))
+            continue
+        flag = max(action.option_strings, key=len)
+        if isinstance(action, argparse._StoreTrueAction):
+            options += [flag] if value else []
+        elif isinstance(action, argparse._StoreFalseAction):
+            options += [] if value else [flag]
+        elif isinstance(action, argparse._AppendAction):
+            for v in values:
+                options += [flag, v]
+        else:
+            options += [flag, *values]
+    argv: list[str] = []
+    for _, values in sorted(positional):
+        argv += values
+    return argv + options
+
+
+def input_files(params: dict[str, Any]) -> list[Path]:
+    """Parameter values that name an existing file or folder: the stage's inputs."""
+    found: list[Path] = []
+    for value in params.values():
+        for v in value if isinstance(value, list) else [value]:
+            if isinstance(v, str) and v and Path(v).exists():
+                found.append(Path(v))
+    return found
+
+
+def cache_key(command: str, argv: list[str], hashes: dict[str, str]) -> str:
+    """Hash of what determines a stage's output: its command line and its inputs' contents."""
+    blob = json.dumps({"command": command, "argv": argv, "inputs": hashes}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def read_stamp(stage_dir: Path) -> dict[str, Any] | None:
+    """The stamp left by an earlier run of a stage, or None."""
+    try:
+        return json.loads((stage_dir / STAMP).read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+
+
+def _write_stamp(stage_dir: Path, stamp: dict[str, Any]) -> None:
+    with atomic_output(stage_dir / STAMP) as tmp:
+        tmp.write_text(json.dumps(stamp, indent=2))
+
+
+class Runner:
+    """Runs one pipeline under ``root/<pipeline>/`` (``root`` defaults to ``runs``)."""
+
+    def __init__(
+        self,
+        pipeline: Pipeline,
+        parsers: dict[str, argparse.ArgumentParser],
+        root: Path = Path("runs"),
+        force: set[str] | None = None,
+        start: str | None = None,
+        until: str | None = None,
+    ) -> None:
+        self.pipeline = pipeline
+        self.parsers = parsers
+        self.dir = root / pipeline.name
+        self.force = set(force or ())
+        ids = pipeline.ids()
+        for sid in self.force | {s for s in (start, until) if s}:
+            pipeline.stage(sid)  # raises with the known ids
+        self.first = ids.index(start) if start else 0
+        self.last = ids.index(until) if until else len(ids) - 1
+        self.stage_dirs = {sid: self.dir / sid for sid in ids}
+
+    def _plan(self, stage: Stage) -> tuple[list[str], dict[str, str], str]:
+        params = {
+            k: substitute(v, self.pipeline.vars, self.stage_dirs) for k, v in stage.params.items()
+        }
+        argv = stage_argv(stage, self.parsers[stage.command], params)
+        hashes = {str(p): sha256_file(p) for p in input_files(params)}
+        return argv, hashes, cache_key(stage.command, argv, hashes)
+
+    def _why(
+        self, stage: Stage, stamp: dict[str, Any] | None, argv: list[str], hashes: dict
+    ) -> str:
+        if stage.id in self.force:
+            return "forced"
+        if stamp is None:
+            return "no previous output"
+        if stamp.get("status") != "done":
+            return "previous run did not finish (resuming)"
+        if stamp.get("argv") != argv:
+            return f"parameters changed: {' '.join(stamp.get('argv', []))} -> {' '.join(argv)}"
+        changed = [p for p, h in hashes.items() if stamp.get("inputs", {}).get(p) != h]
+        return f"input changed: {', '.join(changed)}" if changed else "up to date"
+
+    def run(self, dry_run: bool = False) -> list[StageResult]:
+        """Run (or with ``dry_run`` only explain) the stages; stops at the first failure."""
+        from dronecap import cli
+        from dronecap.figures import key_figure
+
+        results: list[StageResult] = []
+        upstream_runs: set[str] = set()
+        for i, stage in enumerate(self.pipeline.stages):
+            sdir = self.stage_dirs[stage.id]
+            stamp = read_stamp(sdir)
+            if i > self.last:
+                results.append(StageResult(stage.id, "skipped", "after --until"))
+                continue
+            pending = [u for u in stage.upstream if u in upstream_runs]
+            if dry_run and pending:
+                results.append(StageResult(stage.id, "would run", f"upstream {pending[0]} runs"))
+                upstream_runs.add(stage.id)
+                continue
+            argv, hashes, key = self._plan(stage)
+            why = self._why(stage, stamp, argv, hashes)
+            if i < self.first:
+                if why != "up to date":
+                    raise InputError(
+                        f"stage {stage.id!r} comes before --from and is not up to date ({why})"
+                    )
+                results.append(
+                    StageResult(stage.id, "cached", "before --from", figure=stamp.get("figure", ""))
+                )
+                continue
+            if why == "up to date":
+                results.append(
+                    StageResult(
+                        stage.id, "cached", why, stamp.get("seconds", 0.0), stamp.get("figure", "")
+                    )
+                )
+                continue
+            upstream_runs.add(stage.id)
+            if dry_run:
+                results.append(StageResult(stage.id, "would run", why))
+                continue
+            resuming = (
+                stamp is not None and stamp.get("status") != "done" and stamp.get("key") == key
+            )
+            if sdir.exists() and not resuming:
+                shutil.rmtree(sdir)
+            sdir.mkdir(parents=True, exist_ok=True)
+            record = {
+                "key": key,
+                "status": "running",
+                "command": stage.command,
+                "argv": argv,
+                "inputs": hashes,
+            }
+            _write_stamp(sdir, record)
+            full = [stage.command, *argv, "--workdir", str(sdir)]
+            print(f"\n== stage {stage.id}: dronecap {' '.join(full)}", flush=True)
+            t0 = time.perf_counter()
+            code = cli.main(full)
+            seconds = time.perf_counter() - t0
+            if code != 0:
+                results.append(StageResult(stage.id, "failed", f"exit code {code}", seconds))
+                break
+            figure = key_figure(stage.command, sdir)
+            _write_stamp(sdir, {**record, "status": "done", "seconds": seconds, "figure": figure})
+            results.append(StageResult(stage.id, "ran", why, seconds, figure))
+        return results
+
+
+def summary_table(results: list[StageResult]) -> str:
+    """A plain-text table: stage, ran/cached, time, key figure, reason."""
+    rows = [("stage", "status", "time", "key figure", "why")]
+    rows += [(r.id, r.status, f"{r.seconds:.1f} s", r.figure, r.why) for r in results]
+    widths = [max(len(row[c]) for row in rows) for c in range(5)]
+    lines = [
+        "  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip()
+        for row in rows
+    ]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def write_report(runner: Runner, results: list[StageResult]) -> Path:
+    """``runs/<pipeline>/report.md``: the summary table and every plot the stages made."""
+    out = runner.dir / "report.md"
+    lines = [f"# Pipeline `{runner.pipeline.name}`", ""]
+    if runner.pipeline.description:
+        lines += [runner.pipeline.description, ""]
+    lines += ["| stage | status | time | key figure |", "|---|---|---|---|"]
+    lines += [f"| {r.id} | {r.status} | {r.seconds:.1f} s | {r.figure} |" for r in results]
+    for r in results:
+        pngs = sorted(runner.stage_dirs[r.id].rglob("*.png"))[:6]
+        if pngs:
+            lines += ["", f"## {r.id}", ""]
+            lines += [f"![{p.name}]({p.relative_to(runner.dir)})" for p in pngs]
+    runner.dir.mkdir(parents=True, exist_ok=True)
+    with atomic_output(out) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+    return out
