@@ -10,7 +10,7 @@ Every stage exchanges data through these files (``frames.h5``, ``posed.h5``, ``d
     /source_index  int64   [N]           index of the frame in its source (video frame number)
     /timestamps    float64 [N]           seconds from the start of the source
     /split         int8    [N]           0 train, 1 val, 2 test, -1 unassigned
-    /near_far      float64 [N, 2]        per-view near/far distance along the optical axis (scene units)
+    /near_far      float64 [N, 2]        per-view near/far along the optical axis (scene units)
     /shards/<name> int16   [N]           client of each frame under a named sharding (-1: none)
     /extra/<name>  any     [...]         stage-specific tables (e.g. ingest's per-frame scores)
     attrs: format="dronecap", format_version, kind, intrinsics (fx, fy, cx, cy),
@@ -255,7 +255,9 @@ def read_header(path: str | Path) -> dict[str, Any]:
         with h5py.File(path, "r") as f:
             attrs = dict(f.attrs)
     except OSError as err:
-        raise DatasetError(f"not a readable HDF5 file (truncated or corrupt?): {err}", path) from None
+        raise DatasetError(
+            f"not a readable HDF5 file (truncated or corrupt?): {err}", path
+        ) from None
     fmt = attrs.get("format")
     if fmt != FORMAT:
         raise DatasetError(f"not a dronecap dataset (format attribute {fmt!r})", path)
