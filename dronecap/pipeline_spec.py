@@ -108,6 +108,15 @@ def load_specs(path: str | Path) -> LineDict:
     return data
 
 
+def commands_used(specs: LineDict, name: str) -> set[str]:
+    """Names of the commands a pipeline's stages run (unvalidated; for building parsers)."""
+    spec = specs.get(name)
+    stages = spec.get("stages") if isinstance(spec, dict) else None
+    if not isinstance(stages, dict):
+        return set()
+    return {b.get("command", s) if isinstance(b, dict) else s for s, b in stages.items()} - {"run"}
+
+
 def parse_overrides(items: list[str]) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
     """Split ``key=value`` overrides into pipeline vars and ``stage.param`` overrides.
 

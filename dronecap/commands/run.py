@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     """Validate the pipeline, run it, print the summary and write report.md."""
     from dronecap.cli import COMMANDS, build_parser
     from dronecap.pipeline import Runner, summary_table, write_report
-    from dronecap.pipeline_spec import build_pipeline, load_specs
+    from dronecap.pipeline_spec import build_pipeline, commands_used, load_specs
 
     path = _pipelines_file(args)
     specs = load_specs(path)
@@ -49,14 +49,8 @@ def run(args: argparse.Namespace) -> int:
         for name, spec in specs.items():
             print(f"{name:20s} {spec.get('description', '') if isinstance(spec, dict) else ''}")
         return 0
-    spec = specs.get(args.name)
-    stages = spec.get("stages") if isinstance(spec, dict) else None
-    used = {
-        (body or {}).get("command", sid) if isinstance(body, dict) or body is None else sid
-        for sid, body in (stages.items() if isinstance(stages, dict) else [])
-    }
     # Only the commands this pipeline uses are imported (each parser import is light).
-    parsers = {name: build_parser(name)[0] for name in used if name in COMMANDS and name != "run"}
+    parsers = {n: build_parser(n)[0] for n in commands_used(specs, args.name) if n in COMMANDS}
     pipeline = build_pipeline(specs, args.name, path, parsers, args.overrides)
     root = Path(args.runs) if args.runs else Path(args.workdir) / "runs"
     runner = Runner(pipeline, parsers, root, set(args.force), args.start, args.until)
