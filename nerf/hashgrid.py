@@ -17,7 +17,8 @@ Conventions (the C++ kernel in ``csrc/hashgrid.cpp`` follows the same ones exact
 
 Low-precision storage (``dtype=torch.float16`` / ``torch.bfloat16``) is emulated: the parameter
 stays a float32 master copy, the encoding reads it rounded to ``dtype`` (straight-through
-gradient), and :meth:`HashGrid.round_storage_` rounds the master in place (call it after each
+gradient; values beyond the dtype's range saturate to its largest finite value), and
+:meth:`HashGrid.round_storage_` rounds the master in place (call it after each
 optimizer step to emulate pure low-precision storage, where updates below half an ulp are lost).
 """
 
@@ -116,7 +117,8 @@ class _RoundTo(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, t: Tensor, dtype: torch.dtype) -> Tensor:  # noqa: D102
-        return t.to(dtype).float()
+        limit = torch.finfo(dtype).max  # saturate: stored values are never inf
+        return t.clamp(-limit, limit).to(dtype).float()
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # noqa: D102
@@ -202,7 +204,7 @@ class HashGrid(torch.nn.Module):
     def round_storage_(self) -> None:
         """Round the float32 master table in place to the storage dtype (no-op for float32)."""
         if self.dtype != torch.float32:
-            self.table.copy_(self.table.to(self.dtype).float())
+            self.table.copy_(_RoundTo.apply(self.table, self.dtype))
 
     def extra_repr(self) -> str:  # noqa: D102
         return (
