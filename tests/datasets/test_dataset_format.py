@@ -1,0 +1,176 @@
+"""The HDF5 dataset format: round trip of every field, refusal of bad files, atomic writes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from dronecap.datasets.format import (
+    FORMAT_VERSION,
+    Dataset,
+    DatasetError,
+    Intrinsics,
+    open_dataset,
+    provenance,
+    read_header,
+    write_dataset,
+)
+
+
+def full_dataset(channels: int = 3) -> Dataset:
+    """Three 4x5 frames with every optional field filled."""
+    rng = np.random.default_rng(0)
+    n, h, w = 3, 4, 5
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, 3] = rng.normal(size=(n, 3))
+    return Dataset(
+        images=rng.integers(0, 256, (n, h, w, channels), dtype=np.uint8),
+        kind="posed",
+        alpha=rng.integers(0, 256, (n, h, w), dtype=np.uint8),
+        poses=poses,
+        intrinsics=Intrinsics(5.5, 6.5, 2.5, 2.0, w, h, "SIMPLE_RADIAL", (0.01,)),
+        names=["a.png", "b.png", "ü.png"],
+        source_index=np.array([3, 7, 11]),
+        timestamps=np.array([0.1, 0.2, 0.35]),
+        split=np.array([0, 2, -1]),
+        near_far=np.array([[0.1, 2.0], [0.2, 3.0], [0.3, 4.0]]),
+        aabb=np.array([[-1.0, -2.0, -3.0], [1.0, 2.0, 3.0]]),
+        normalization=np.diag([2.0, 2.0, 2.0, 1.0]),
+        background=(1.0,) * channels,
+        shards={"iid": np.array([0, -1, 1]), "sector": np.array([1, -1, 0])},
+        extra={"sharpness": np.array([1.5, 2.5, 3.5]), "label": np.array(["x", "y", "z"])},
+        provenance=provenance("test", {"k": 1}, {"in.h5": "ab" * 32}),
+        attrs={"scene": "unit", "list": [1, 2]},
+    )
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_every_field_round_trips(tmp_path: Path, channels: int) -> None:
+    ds = full_dataset(channels)
+    back = open_dataset(write_dataset(tmp_path / "d.h5", ds))
+    assert back.kind == "posed" and back.n == 3 and back.channels == channels
+    for name in ("images", "alpha", "poses", "source_index", "timestamps", "split", "near_far"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(ds, name), err_msg=name)
+    assert back.images.dtype == np.uint8 and back.poses.dtype == np.float64
+    assert back.split.dtype == np.int8
+    assert back.intrinsics == ds.intrinsics
+    assert back.names == ds.names
+    np.testing.assert_array_equal(back.aabb, ds.aabb)
+    np.testing.assert_array_equal(back.normalization, ds.normalization)
+    assert back.background == ds.background
+    assert set(back.shards) == {"iid", "sector"}
+    for k, v in ds.shards.items():
+        np.testing.assert_array_equal(back.shards[k], v)
+        assert back.shards[k].dtype == np.int16
+    np.testing.assert_array_equal(back.extra["sharpness"], ds.extra["sharpness"])
+    assert back.extra["label"].tolist() == ["x", "y", "z"]
+    assert back.provenance == ds.provenance
+    assert back.attrs == ds.attrs
+    assert read_header(tmp_path / "d.h5")["format_version"] == FORMAT_VERSION
+
+
+def test_images_are_chunked_per_frame_and_not_gzip(tmp_path: Path) -> None:
+    write_dataset(tmp_path / "d.h5", full_dataset())
+    with h5py.File(tmp_path / "d.h5") as f:
+        assert f["images"].chunks == (1, 4, 5, 3)
+        assert f["images"].compression in (None, "lzf")
+
+
+def test_minimal_dataset_round_trips(tmp_path: Path) -> None:
+    ds = Dataset(images=np.zeros((2, 3, 3, 1), np.uint8))
+    back = open_dataset(write_dataset(tmp_path / "m.h5", ds))
+    assert back.alpha is None and back.poses is None and back.intrinsics is None
+    assert back.shards == {} and back.extra == {} and back.background is None
+
+
+def assert_one_line_naming(err: pytest.ExceptionInfo, path: Path) -> None:
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert str(path) in msg
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    p = tmp_path / "nothing.h5"
+    with pytest.raises(DatasetError) as err:
+        open_dataset(p)
+    assert_one_line_naming(err, p)
+
+
+def test_corrupt_file(tmp_path: Path) -> None:
+    p = tmp_path / "corrupt.h5"
+    p.write_bytes(np.random.default_rng(1).bytes(4096))
+    with pytest.raises(DatasetError) as err:
+        open_dataset(p)
+    assert_one_line_naming(err, p)
+
+
+def test_foreign_hdf5_file(tmp_path: Path) -> None:
+    p = tmp_path / "foreign.h5"
+    with h5py.File(p, "w") as f:
+        f["images"] = np.zeros((1, 2, 2, 3), np.uint8)
+        f.attrs["format"] = "someone-else"
+    with pytest.raises(DatasetError) as err:
+        open_dataset(p)
+    assert_one_line_naming(err, p)
+    assert "someone-else" in str(err.value)
+
+
+def test_truncated_file(tmp_path: Path) -> None:
+    p = write_dataset(tmp_path / "trunc.h5", full_dataset())
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    with pytest.raises(DatasetError) as err:
+        open_dataset(p)
+    assert_one_line_naming(err, p)
+
+
+def test_newer_version(tmp_path: Path) -> None:
+    p = write_dataset(tmp_path / "new.h5", full_dataset())
+    with h5py.File(p, "a") as f:
+        f.attrs["format_version"] = FORMAT_VERSION + 1
+    with pytest.raises(DatasetError) as err:
+        open_dataset(p)
+    assert_one_line_naming(err, p)
+    assert "newer" in str(err.value)
+
+
+def test_missing_images(tmp_path: Path) -> None:
+    p = write_dataset(tmp_path / "noimg.h5", full_dataset())
+    with h5py.File(p, "a") as f:
+        del f["images"]
+    with pytest.raises(DatasetError) as err:
+        open_dataset(p)
+    assert_one_line_naming(err, p)
+    assert "images" in str(err.value)
+
+
+def test_wrong_kind_is_refused(tmp_path: Path) -> None:
+    p = write_dataset(tmp_path / "posed.h5", full_dataset())
+    with pytest.raises(DatasetError) as err:
+        open_dataset(p, kinds=("dataset", "shard"))
+    assert_one_line_naming(err, p)
+
+
+def test_inconsistent_shapes_are_refused_before_writing(tmp_path: Path) -> None:
+    ds = full_dataset()
+    ds.poses = ds.poses[:2]
+    p = tmp_path / "bad.h5"
+    with pytest.raises(DatasetError) as err:
+        write_dataset(p, ds)
+    assert_one_line_naming(err, p)
+    assert not p.exists()
+
+
+def test_failed_write_leaves_no_file_and_keeps_the_old_one(tmp_path: Path) -> None:
+    p = write_dataset(tmp_path / "d.h5", full_dataset())
+    before = p.read_bytes()
+    ds = full_dataset()
+    ds.extra["unstorable"] = np.array([{}, {}], dtype=object)  # h5py fails after images are written
+    with pytest.raises(TypeError):
+        write_dataset(p, ds)
+    assert p.read_bytes() == before
+    with pytest.raises(TypeError):
+        write_dataset(tmp_path / "fresh.h5", ds)
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["d.h5"]
