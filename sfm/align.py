@@ -1,0 +1,208 @@
+"""Pose accuracy against ground truth: Umeyama similarity alignment, ATE and rotation errors.
+
+SfM recovers a trajectory only up to a similarity (rotation, translation, scale). Before
+comparing it with ground truth we fit that similarity to the camera centres (Umeyama 1991,
+least squares) and measure what is left. The fit needs camera centres that span at least a
+plane: with collinear centres the rotation about the line is undetermined, with (nearly)
+identical centres even the scale is; both cases raise :class:`DegenerateAlignment` rather than
+returning an arbitrary answer.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dronecap.errors import InputError
+
+
+class DegenerateAlignment(InputError):
+    """The camera centres do not determine a similarity (too few, coincident or collinear)."""
+
+
+@dataclass
+class Similarity:
+    """x_target = scale * rotation @ x_source + translation."""
+
+    rotation: np.ndarray  # float64 [3, 3], det +1
+    translation: np.ndarray  # float64 [3]
+    scale: float
+
+    def matrix(self) -> np.ndarray:
+        """The 4x4 homogeneous matrix of the similarity, float64."""
+        m = np.eye(4)
+        m[:3, :3] = self.scale * self.rotation
+        m[:3, 3] = self.translation
+        return m
+
+    def apply_points(self, x: np.ndarray) -> np.ndarray:
+        """Map points [N, 3] -> [N, 3]."""
+        return self.scale * x @ self.rotation.T + self.translation
+
+    def apply_poses(self, c2w: np.ndarray) -> np.ndarray:
+        """Map camera-to-world poses [N, 4, 4] (rotation part stays orthonormal)."""
+        out = np.array(c2w, dtype=np.float64, copy=True)
+        out[:, :3, :3] = self.rotation @ out[:, :3, :3]
+        out[:, :3, 3] = self.apply_points(out[:, :3, 3])
+        return out
+
+
+def umeyama(source: np.ndarray, target: np.ndarray, min_spread: float = 1e-3) -> Similarity:
+    """Least-squares similarity mapping ``source`` points onto ``target`` points.
+
+    Args:
+        source: [N, 3] points (e.g. SfM camera centres, arbitrary units).
+        target: [N, 3] corresponding points (e.g. ground-truth centres, metres).
+        min_spread: the second singular value of each centred point set must be at least this
+            fraction of the first; below it the points are (nearly) collinear and the rotation
+            about their line is not determined.
+
+    Raises:
+        DegenerateAlignment: fewer than 3 points, coincident points, or collinear points.
+    """
+    src = np.asarray(source, dtype=np.float64)
+    dst = np.asarray(target, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
+        raise ValueError(f"need two [N, 3] arrays, got {src.shape} and {dst.shape}")
+    n = src.shape[0]
+    if n < 3:
+        raise DegenerateAlignment(f"only {n} camera centres: a similarity needs at least 3")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    for name, x, ref in (("recovered", xs, src), ("ground-truth", xd, dst)):
+        sv = np.linalg.svd(x, compute_uv=False)
+        size = max(float(np.abs(ref).max()), 1.0)
+        if sv[0] <= 1e-9 * size * np.sqrt(n):
+            raise DegenerateAlignment(f"the {name} camera centres all coincide (no baseline)")
+        if sv[1] < min_spread * sv[0]:
+            raise DegenerateAlignment(
+                f"the {name} camera centres are collinear (spread ratio {sv[1] / sv[0]:.1e}):"
+                " the rotation about the flight line is undetermined"
+            )
+    cov = xd.T @ xs / n
+    u, d, vt = np.linalg.svd(cov)
+    s = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s[2, 2] = -1.0
+    rot = u @ s @ vt
+    var_s = (xs**2).sum() / n
+    scale = float(np.trace(np.diag(d) @ s) / var_s)
+    trans = mu_d - scale * rot @ mu_s
+    return Similarity(rot, trans, scale)
+
+
+@dataclass
+class PoseAccuracy:
+    """Trajectory error after similarity alignment (all distances in ground-truth units)."""
+
+    matched: int  # recovered frames that have ground truth
+    total_gt: int  # ground-truth frames among the input frames
+    registration_rate: float  # matched / total_gt
+    ate_rmse: float  # RMSE of camera-centre error after alignment
+    ate_max: float
+    extent: float  # diagonal of the ground-truth centres' bounding box (of the matched frames)
+    ate_percent: float  # 100 * ate_rmse / extent
+    rot_median_deg: float  # median camera rotation error after alignment, degrees
+    rot_max_deg: float
+    scale: float  # similarity scale recovered -> ground truth
+
+    def to_dict(self) -> dict[str, float | int]:
+        """JSON-able record."""
+        return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in asdict(self).items()}
+
+
+def rotation_angle_deg(r: np.ndarray) -> np.ndarray:
+    """Angle of rotation matrices [N, 3, 3] in degrees, [N]."""
+    cos = (np.trace(r, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def pose_accuracy(
+    est_c2w: np.ndarray, gt_c2w: np.ndarray, total_gt: int | None = None
+) -> PoseAccuracy:
+    """Align ``est_c2w`` to ``gt_c2w`` with Umeyama on camera centres and measure the errors.
+
+    Args:
+        est_c2w: [N, 4, 4] recovered camera-to-world poses (OpenCV axes, any scale).
+        gt_c2w: [N, 4, 4] ground-truth poses of the same frames (OpenCV axes).
+        total_gt: how many frames should have been recovered (for the registration rate);
+            defaults to N.
+
+    Raises:
+        DegenerateAlignment: when the centres do not determine a similarity.
+    """
+    est = np.asarray(est_c2w, dtype=np.float64)
+    gt = np.asarray(gt_c2w, dtype=np.float64)
+    sim = umeyama(est[:, :3, 3], gt[:, :3, 3])
+    aligned = sim.apply_poses(est)
+    err = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
+    extent = float(np.linalg.norm(gt[:, :3, 3].max(0) - gt[:, :3, 3].min(0)))
+    rel = np.einsum("nji,njk->nik", gt[:, :3, :3], aligned[:, :3, :3])  # R_gt^T R_est
+    rot = rotation_angle_deg(rel)
+    rmse = float(np.sqrt((err**2).mean()))
+    total = len(est) if total_gt is None else total_gt
+    return PoseAccuracy(
+        matched=len(est),
+        total_gt=total,
+        registration_rate=len(est) / max(total, 1),
+        ate_rmse=rmse,
+        ate_max=float(err.max()),
+        extent=extent,
+        ate_percent=100.0 * rmse / extent if extent > 0 else float("inf"),
+        rot_median_deg=float(np.median(rot)),
+        rot_max_deg=float(rot.max()),
+        scale=sim.scale,
+    )
+
+
+def load_ground_truth(path: str | Path) -> dict[int, np.ndarray]:
+    """Read the simulator's ``poses.json``: source frame index -> c2w [4, 4] (OpenCV, metres).
+
+    Expected layout: ``{"frames": [{"index": int, "c2w": 4x4 nested list}, ...], ...}``.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+        out = {int(f["index"]): np.asarray(f["c2w"], dtype=np.float64) for f in data["frames"]}
+    except FileNotFoundError:
+        raise InputError("ground-truth file not found", path) from None
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+        msg = f"not a poses.json with frames[].index and frames[].c2w ({err})"
+        raise InputError(msg, path) from None
+    if any(m.shape != (4, 4) or not np.isfinite(m).all() for m in out.values()):
+        raise InputError("every frames[].c2w must be a finite 4x4 matrix", path)
+    return out
+
+
+def accuracy_against(
+    c2w: np.ndarray,
+    source_index: np.ndarray,
+    gt: dict[int, np.ndarray],
+    all_source_index: np.ndarray,
+) -> dict[str, float | int | str]:
+    """Accuracy record of recovered poses against ground truth, matched by source frame index.
+
+    Args:
+        c2w: [R, 4, 4] recovered poses of the registered frames.
+        source_index: int [R] source frame number of each registered frame.
+        gt: source frame number -> ground-truth c2w [4, 4].
+        all_source_index: int [N] source frame numbers of every input frame (the denominator of
+            the registration rate counts those with ground truth).
+
+    Returns:
+        :meth:`PoseAccuracy.to_dict`, or {"error": why} when alignment is degenerate or no
+        frame has ground truth.
+    """
+    have = [i for i, s in enumerate(source_index) if int(s) in gt]
+    total = sum(int(s) in gt for s in all_source_index)
+    if total == 0:
+        return {"error": "no input frame's source_index appears in the ground truth"}
+    est = np.asarray(c2w)[have]
+    ref = np.stack([gt[int(source_index[i])] for i in have]) if have else np.zeros((0, 4, 4))
+    try:
+        return pose_accuracy(est, ref, total_gt=total).to_dict()
+    except DegenerateAlignment as err:
+        return {"error": f"alignment impossible: {err}", "matched": len(have), "total_gt": total}

@@ -1,0 +1,215 @@
+"""The COLMAP phases on pycolmap: SIFT extraction, matching (with a home-made loop index), mapping.
+
+Each function works on files (an image folder, a COLMAP database, model folders) so that the
+whole sequence can run in a child process (:mod:`dronecap.sfm.isolate`): a COLMAP ``CHECK``
+failure aborts its process, and it must never take the caller down with it.
+
+Loop detection never touches pycolmap's default vocabulary tree (offline, the attempt to download
+it aborts the process): :func:`build_visual_index` builds a small index from the flight's own
+descriptors and the sequential matcher is pointed at that file.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from dronecap.sfm.options import SfmOptions
+
+MIN_KEYPOINTS = 16  # a frame with fewer SIFT keypoints cannot register (reported as textureless)
+
+
+def extract(
+    database: Path,
+    image_dir: Path,
+    names: list[str],
+    opts: SfmOptions,
+    camera: tuple[str, list[float]] | None,
+) -> dict[str, int]:
+    """SIFT on CPU into ``database``, one camera shared by every image.
+
+    Args:
+        camera: (COLMAP model name, params) when intrinsics are known (params in COLMAP's pixel
+            convention), or None to let COLMAP guess a SIMPLE_RADIAL camera from the image size.
+
+    Returns:
+        image name -> number of keypoints.
+    """
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    if camera is None:
+        reader.camera_model = "SIMPLE_RADIAL"
+    else:
+        reader.camera_model = camera[0]
+        reader.camera_params = ",".join(f"{v:.10g}" for v in camera[1])
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = opts.num_threads
+    ext.sift.max_num_features = opts.max_features
+    ext.sift.first_octave = opts.first_octave
+    ext.sift.peak_threshold = opts.peak_threshold
+    pycolmap.extract_features(
+        database,
+        image_dir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=ext,
+        device=pycolmap.Device.cpu,
+    )
+    with pycolmap.Database.open(database) as db:
+        return {im.name: db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()}
+
+
+def build_visual_index(database: Path, out_file: Path, opts: SfmOptions) -> int:
+    """Write a visual index (vocabulary + inverted file) of the flight's own SIFT descriptors.
+
+    The vocabulary has at most ``opts.visual_words`` words and at most one word per 16
+    descriptors (k-means needs several samples per centre). Returns the number of words.
+    """
+    import pycolmap
+
+    with pycolmap.Database.open(database) as db:
+        images = [im for im in db.read_all_images() if db.num_keypoints_for_image(im.image_id)]
+        descs = {im.image_id: db.read_descriptors(im.image_id).to_float() for im in images}
+        kpts = {im.image_id: _keypoints(db.read_keypoints(im.image_id)) for im in images}
+    stacked = np.concatenate([d.data for d in descs.values()]).astype(np.float32)
+    words = int(max(16, min(opts.visual_words, 2 ** int(np.log2(max(len(stacked) // 16, 16))))))
+    index = pycolmap.VisualIndex.create(128, 64)
+    build = pycolmap.VisualIndex.BuildOptions()
+    build.num_visual_words = words
+    build.num_threads = opts.num_threads
+    build.num_iterations = 30
+    sift = pycolmap.FeatureExtractorType.SIFT
+    index.build(build, pycolmap.FeatureDescriptorsFloat(sift, stacked))
+    add = pycolmap.VisualIndex.IndexOptions()
+    add.num_threads = opts.num_threads
+    for image_id, desc in descs.items():
+        index.add(add, image_id, kpts[image_id], desc)
+    index.prepare()
+    index.write(out_file)
+    return words
+
+
+def _keypoints(rows: np.ndarray) -> Any:
+    """COLMAP keypoint table [K, 6] (x, y, a11, a12, a21, a22) -> pycolmap.FeatureKeypoints."""
+    import pycolmap
+
+    keys = ("x", "y", "a11", "a12", "a21", "a22")
+    return pycolmap.FeatureKeypoints(
+        [pycolmap.FeatureKeypoint(**dict(zip(keys, map(float, r), strict=True))) for r in rows]
+    )
+
+
+def match(database: Path, work: Path, opts: SfmOptions, n_frames: int) -> dict[str, Any]:
+    """Match and geometrically verify image pairs; returns what was done (for the report)."""
+    import pycolmap
+
+    kind = opts.resolved_matcher(n_frames)
+    info: dict[str, Any] = {"matcher": kind}
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = opts.num_threads
+    if kind == "exhaustive":
+        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = opts.overlap
+        pairing.quadratic_overlap = opts.quadratic_overlap
+        pairing.num_threads = opts.num_threads
+        use_loops = opts.loop_detection and n_frames > opts.overlap + 1
+        if use_loops:
+            t = time.perf_counter()
+            index_file = work / "visual_index.bin"
+            info["visual_words"] = build_visual_index(database, index_file, opts)
+            info["index_seconds"] = round(time.perf_counter() - t, 3)
+            pairing.loop_detection = True
+            pairing.loop_detection_period = opts.loop_period
+            pairing.loop_detection_num_images = opts.loop_num_images
+            pairing.vocab_tree_path = str(index_file)  # never the default: it downloads
+        info["loop_detection"] = use_loops
+        pycolmap.match_sequential(
+            database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+        )
+    with pycolmap.Database.open(database) as db:
+        info["matched_pairs"] = db.num_matched_image_pairs()
+        info["verified_pairs"] = db.num_verified_image_pairs()
+        pair_ids, geoms = db.read_two_view_geometries()
+        names = {im.image_id: im.name for im in db.read_all_images()}
+    linked: dict[str, int] = dict.fromkeys(names.values(), 0)
+    for pair_id, g in zip(pair_ids, geoms, strict=True):
+        if g.inlier_matches.shape[0] >= opts.min_num_matches:
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            linked[names[a]] += 1
+            linked[names[b]] += 1
+    info["verified_partners"] = linked
+    return info
+
+
+def mapper_options(opts: SfmOptions, known_camera: bool, relaxed: bool = False) -> Any:
+    """IncrementalPipelineOptions for small gray frames; ``relaxed`` for the extension pass."""
+    import pycolmap
+
+    m = pycolmap.IncrementalPipelineOptions()
+    m.min_num_matches = opts.min_num_matches
+    m.max_num_models = opts.max_models
+    m.min_model_size = 3
+    m.num_threads = opts.num_threads
+    m.random_seed = opts.seed
+    m.extract_colors = False
+    m.ba_refine_focal_length = not known_camera
+    m.ba_refine_extra_params = not known_camera
+    m.ba_refine_principal_point = False
+    m.mapper.init_min_num_inliers = opts.init_min_num_inliers
+    m.mapper.init_min_tri_angle = 8.0
+    m.mapper.abs_pose_min_num_inliers = opts.abs_pose_min_num_inliers
+    m.mapper.abs_pose_refine_focal_length = not known_camera
+    m.mapper.abs_pose_refine_extra_params = not known_camera
+    m.mapper.random_seed = opts.seed
+    if relaxed:
+        m.multiple_models = False
+        m.mapper.abs_pose_min_num_inliers = max(8, opts.abs_pose_min_num_inliers // 2)
+        m.mapper.abs_pose_min_inlier_ratio = 0.15
+        m.mapper.max_reg_trials = 6
+    return m
+
+
+def incremental_map(
+    database: Path,
+    image_dir: Path,
+    out_dir: Path,
+    opts: SfmOptions,
+    known_camera: bool,
+    on_register: Callable[[int], None],
+    input_path: Path | None = None,
+) -> dict[int, int]:
+    """Run COLMAP's incremental mapper; writes models to ``out_dir/<k>``.
+
+    Args:
+        on_register: called with the number of frames just registered (2 for the initial pair,
+            then 1 per frame) so that a progress bar can follow.
+        input_path: resume from this model (extension pass, relaxed registration thresholds).
+
+    Returns:
+        model number -> registered frames.
+    """
+    import pycolmap
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    options = mapper_options(opts, known_camera, relaxed=input_path is not None)
+    models = pycolmap.incremental_mapping(
+        database,
+        image_dir,
+        out_dir,
+        options,
+        input_path=str(input_path) if input_path is not None else "",
+        initial_image_pair_callback=lambda: on_register(2),
+        next_image_callback=lambda: on_register(1),
+    )
+    sizes = {}
+    for k, rec in models.items():
+        rec.write(out_dir / str(k))  # pycolmap writes some models only at the end; be sure
+        sizes[int(k)] = rec.num_reg_images()
+    return sizes

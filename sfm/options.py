@@ -1,0 +1,63 @@
+"""Settings of ``dronecap sfm``: one dataclass, one documented field each, tuned for 160x160.
+
+The defaults come from ``benchmarks/sfm_accuracy.py`` (see docs/sfm.md for the numbers).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+MATCHERS = ("auto", "sequential", "exhaustive")
+
+
+@dataclass
+class SfmOptions:
+    """What COLMAP is asked to do, from features to mapping."""
+
+    # --- features (SIFT on CPU) ---
+    max_features: int = 2048  # SIFT keypoints kept per image (160x160 frames yield ~100-400)
+    first_octave: int = -1  # -1 upsamples 2x before the first octave: more features on tiny images
+    peak_threshold: float = 0.004  # SIFT contrast threshold (COLMAP default 0.0067)
+    # --- matching ---
+    matcher: str = "auto"  # "sequential" (video order), "exhaustive", or "auto"
+    exhaustive_below: int = 80  # "auto" matches every pair when there are fewer frames than this
+    overlap: int = 10  # sequential: each frame is matched with this many following frames
+    quadratic_overlap: bool = False  # sequential: pair i with i+2^k instead of i+1..i+overlap
+    loop_detection: bool = True  # sequential: add pairs retrieved by a visual index of the flight
+    loop_period: int = 5  # query the visual index with every this-many-th frame
+    loop_num_images: int = 15  # frames retrieved per query
+    visual_words: int = 1024  # size of the flight's own visual vocabulary (upper bound)
+    # --- mapping ---
+    min_num_matches: int = 15  # verified matches for a pair to count in mapping
+    init_min_num_inliers: int = 50  # initial pair; COLMAP relaxes this itself if it fails
+    abs_pose_min_num_inliers: int = 15  # 2D-3D inliers needed to register a frame
+    max_models: int = 10  # COLMAP keeps starting new models up to this many
+    extend: bool = True  # resume mapping from the largest model to absorb the others
+    seed: int = 0  # random seed of the mapper (deterministic runs)
+    num_threads: int = -1  # -1: all cores
+    # --- acceptance ---
+    min_registration: float = 0.5  # fail (exit 1) when fewer frames than this fraction register
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first impossible setting."""
+        if self.matcher not in MATCHERS:
+            raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
+        if self.max_features < 16:
+            raise ValueError(f"max_features must be at least 16, got {self.max_features}")
+        if self.overlap < 1:
+            raise ValueError(f"overlap must be at least 1, got {self.overlap}")
+        if not 0.0 <= self.min_registration <= 1.0:
+            raise ValueError(f"min_registration must be in [0, 1], got {self.min_registration}")
+        if self.loop_period < 1 or self.loop_num_images < 1 or self.visual_words < 16:
+            raise ValueError("loop_period and loop_num_images must be >= 1, visual_words >= 16")
+
+    def resolved_matcher(self, n_frames: int) -> str:
+        """ "sequential" or "exhaustive" for a flight of ``n_frames`` frames."""
+        if self.matcher != "auto":
+            return self.matcher
+        return "exhaustive" if n_frames < self.exhaustive_below else "sequential"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able copy (stored in provenance and the report)."""
+        return asdict(self)

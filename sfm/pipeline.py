@@ -1,0 +1,231 @@
+"""The ``dronecap sfm`` stage: frames.h5 -> posed.h5 plus the COLMAP model, PLY and report.
+
+Outputs (all written atomically):
+
+- ``posed.h5`` (kind "posed"): the registered frames only, c2w poses (OpenCV axes) in the
+  normalised scene frame, the COLMAP camera as intrinsics, AABB, per-view near/far, the
+  similarity applied (``normalization``), provenance with the hash of frames.h5;
+- ``<sfm_dir>/model/``: the chosen COLMAP model (binary, COLMAP's own frame and units);
+- ``<sfm_dir>/points.ply``: the sparse points kept by the outlier removal, in the scene frame;
+- ``<sfm_dir>/report.json``: see :mod:`dronecap.sfm.report` and docs/sfm.md.
+
+``<sfm_dir>/work/`` keeps COLMAP's database, image folder, raw models and log for inspection.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from dronecap.datasets.format import Dataset, open_dataset, provenance, write_dataset
+from dronecap.sfm.align import accuracy_against, load_ground_truth
+from dronecap.sfm.colmap_steps import MIN_KEYPOINTS
+from dronecap.sfm.normalize import apply_to_points, apply_to_poses, near_far, normalize_scene
+from dronecap.sfm.options import SfmOptions
+from dronecap.sfm.reconstruct import ColmapResult, intrinsics_from_colmap, reconstruct
+from dronecap.sfm.report import ADVICE, drop_reason, dropped_runs, format_report
+
+from dronecap.errors import InputError
+from dronecap.files import atomic_output, sha256_file
+
+MIN_FRAMES = 3
+
+
+def model_arrays(rec: Any, names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
+    """Registered frames of a pycolmap Reconstruction.
+
+    Args:
+        rec: pycolmap.Reconstruction.
+        names: work-folder name of every input frame (flight order).
+
+    Returns:
+        frame indices int [R] (sorted), c2w float64 [R, 4, 4] (OpenCV axes, COLMAP units),
+        points float64 [P, 3], and for each registered frame the int [P_i] row numbers (into
+        ``points``) of the points it observes.
+    """
+    pos = {n: i for i, n in enumerate(names)}
+    ids = sorted(rec.points3D.keys())
+    row = {pid: r for r, pid in enumerate(ids)}
+    points = np.array([rec.points3D[p].xyz for p in ids], dtype=np.float64).reshape(-1, 3)
+    regs = sorted((pos[rec.images[i].name], i) for i in rec.reg_image_ids())
+    idx = np.array([f for f, _ in regs], dtype=np.int64)
+    c2w = np.zeros((len(regs), 4, 4))
+    seen = []
+    for k, (_, image_id) in enumerate(regs):
+        image = rec.images[image_id]
+        w2c = np.eye(4)
+        w2c[:3] = image.cam_from_world().matrix()
+        c2w[k] = np.linalg.inv(w2c)
+        seen.append(np.array([row[p.point3D_id] for p in image.points2D if p.has_point3D()], int))
+    return idx, c2w, points, seen
+
+
+def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict[str, Any]:
+    """Report fields that do not need the normalised scene (see :mod:`dronecap.sfm.report`)."""
+    n = ds.n
+    summary = res.summary
+    keypoints = summary.get("keypoints", {})
+    partners = summary.get("match", {}).get("verified_partners", {})
+    missing = np.setdiff1d(np.arange(n), registered)
+    src = ds.source_index if ds.source_index is not None else np.arange(n)
+    dropped = [
+        {
+            "frame": int(i),
+            "source_index": int(src[i]),
+            "name": ds.names[i] if ds.names else res.names[i],
+            "reason": drop_reason(
+                keypoints.get(res.names[i], 0), partners.get(res.names[i], 0), MIN_KEYPOINTS
+            ),
+        }
+        for i in missing
+    ]
+    match_info = {k: v for k, v in summary.get("match", {}).items() if k != "verified_partners"}
+    return {
+        "status": "ok",
+        "message": summary.get("stopped") or "",
+        "frames_total": n,
+        "registered": len(registered),
+        "registration_rate": len(registered) / max(n, 1),
+        "dropped": dropped,
+        "dropped_runs": dropped_runs(missing, n),
+        "models": summary.get("models", {}),
+        "matching": match_info,
+        "keypoints_per_frame_median": float(np.median(list(keypoints.values())))
+        if keypoints
+        else 0.0,
+        "times": {k: round(v, 3) for k, v in res.times.items()},
+    }
+
+
+def run_sfm(
+    frames_path: Path,
+    posed_path: Path,
+    sfm_dir: Path,
+    opts: SfmOptions,
+    gt_path: Path | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Recover poses of ``frames_path`` and write ``posed_path`` and ``sfm_dir`` outputs.
+
+    Returns the report dict (also printed when ``progress`` and stored as report.json).
+
+    Raises:
+        InputError: unreadable input, too few frames, nothing reconstructed, or a registration
+            rate below ``opts.min_registration`` (the report is still written; posed.h5 is not).
+    """
+    t0 = time.perf_counter()
+    try:
+        opts.validate()
+    except ValueError as err:
+        raise InputError(str(err)) from None
+    ds = open_dataset(frames_path)
+    gt = load_ground_truth(gt_path) if gt_path is not None else None
+    if ds.n < MIN_FRAMES:
+        raise InputError(f"only {ds.n} frame(s); SfM needs at least {MIN_FRAMES}", frames_path)
+    sfm_dir.mkdir(parents=True, exist_ok=True)
+    known = ds.intrinsics if ds.intrinsics is not None and not ds.intrinsics.distortion else None
+    res = reconstruct(ds.images, sfm_dir / "work", opts, known, progress=progress)
+    rec = res.reconstruction
+    if rec is None or rec.num_reg_images() < MIN_FRAMES:
+        report = build_report(res, ds, np.zeros(0, np.int64))
+        report["status"] = "failed"
+        report["message"] = (
+            f"nothing usable came out: {res.summary.get('stopped') or 'no model with 3+ frames'}; "
+            + ADVICE
+        )
+        _finish(report, sfm_dir, t0, progress)
+        raise InputError(report["message"], frames_path)
+
+    idx, c2w, points, seen = model_arrays(rec, res.names)
+    report = build_report(res, ds, idx)
+    t = time.perf_counter()
+    norm = normalize_scene(c2w, points)
+    poses = apply_to_poses(norm.matrix, c2w)
+    pts = apply_to_points(norm.matrix, points)
+    nf = near_far(poses, norm.aabb, [pts[s] for s in seen])
+    cam = rec.cameras[rec.images[rec.reg_image_ids()[0]].camera_id]
+    k = intrinsics_from_colmap(cam.model_name, np.asarray(cam.params), cam.width, cam.height)
+    report["times"]["normalize"] = round(time.perf_counter() - t, 3)
+    report["camera"] = {
+        "model": k.model,
+        "fx": k.fx,
+        "fy": k.fy,
+        "cx": k.cx,
+        "cy": k.cy,
+        "distortion": list(k.distortion),
+        "fixed": known is not None,
+    }
+    report["quality"] = {
+        "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+        "mean_track_length": float(rec.compute_mean_track_length()),
+        "points": int(len(points)),
+        "points_kept": int(norm.inliers.sum()),
+    }
+    report["scene"] = {
+        "normalization": norm.matrix.tolist(),
+        "aabb": norm.aabb.tolist(),
+        "near_far_median": np.median(nf, 0).tolist(),
+    }
+    src = ds.source_index if ds.source_index is not None else np.arange(ds.n)
+    if gt is not None:
+        report["accuracy"] = accuracy_against(poses, src[idx], gt, src)
+
+    t = time.perf_counter()
+    with atomic_output(sfm_dir / "model") as tmp:
+        tmp.mkdir()
+        rec.write_binary(tmp)
+    _write_ply(sfm_dir / "points.ply", pts[norm.inliers])
+    report["times"]["write_model"] = round(time.perf_counter() - t, 3)
+
+    if report["registration_rate"] < opts.min_registration:
+        report["status"] = "failed"
+        report["message"] = (
+            f"only {100 * report['registration_rate']:.1f}% of frames registered, below "
+            f"--min-registration {100 * opts.min_registration:.0f}%; {ADVICE}"
+        )
+        _finish(report, sfm_dir, t0, progress)
+        raise InputError(report["message"], frames_path)
+
+    posed = ds.subset(idx)
+    posed.kind = "posed"
+    posed.poses = poses
+    posed.intrinsics = k
+    posed.aabb = norm.aabb
+    posed.near_far = nf
+    posed.normalization = norm.matrix
+    posed.provenance = provenance(
+        "sfm",
+        opts.to_dict(),
+        {"frames.h5": sha256_file(frames_path), **({"gt": sha256_file(gt_path)} if gt else {})},
+    )
+    posed.attrs = {
+        **ds.attrs,
+        "sfm_registered": len(idx),
+        "sfm_frames_total": ds.n,
+        "pixel_centres": "intrinsics in COLMAP's convention: pixel (u, v) centred at (u+.5, v+.5)",
+    }
+    write_dataset(posed_path, posed)
+    _finish(report, sfm_dir, t0, progress)
+    return report
+
+
+def _write_ply(path: Path, points: np.ndarray) -> None:
+    """ASCII PLY of points [P, 3] (float32 x, y, z)."""
+    with atomic_output(path) as tmp, open(tmp, "w") as f:
+        f.write(
+            "ply\nformat ascii 1.0\n"
+            f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\n"
+            "end_header\n"
+        )
+        np.savetxt(f, points, fmt="%.6f")
+
+
+def _finish(report: dict[str, Any], sfm_dir: Path, t0: float, progress: bool) -> None:
+    report["times"]["total"] = round(time.perf_counter() - t0, 3)
+    with atomic_output(sfm_dir / "report.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=1))
+    if progress:
+        print(format_report(report))

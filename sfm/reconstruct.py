@@ -1,0 +1,179 @@
+"""From frames to a COLMAP model: work folder, isolated COLMAP run with progress, model choice.
+
+:func:`reconstruct` writes the frames as zero-padded PNGs (COLMAP's sequential pairing follows
+image *names*), runs :func:`colmap_job` in a child process (:mod:`dronecap.sfm.isolate`) and
+loads the chosen model. The child runs extraction, matching and incremental mapping, picks the
+largest of the models COLMAP returns (model 0 is not always the largest) and, when frames are
+still missing, resumes mapping from it with relaxed registration thresholds so that frames of the
+other models can join it.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from dronecap.datasets.format import Intrinsics
+from dronecap.sfm.colmap_steps import MIN_KEYPOINTS, extract, incremental_map, match
+from dronecap.sfm.isolate import run_isolated
+from dronecap.sfm.options import SfmOptions
+
+ONE_PARAM_FOCAL = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")  # COLMAP models with a single f
+
+
+def image_names(n: int) -> list[str]:
+    """Zero-padded PNG names in flight order: 00000.png, 00001.png, ..."""
+    width = max(5, len(str(max(n - 1, 0))))
+    return [f"{i:0{width}d}.png" for i in range(n)]
+
+
+def colmap_camera(k: Intrinsics) -> tuple[str, list[float]]:
+    """(COLMAP model name, params) of known intrinsics; pixel conventions agree, no shift."""
+    if k.model in ONE_PARAM_FOCAL:
+        return k.model, [k.fx, k.cx, k.cy, *k.distortion]
+    return k.model, [k.fx, k.fy, k.cx, k.cy, *k.distortion]
+
+
+def intrinsics_from_colmap(model: str, params: np.ndarray, width: int, height: int) -> Intrinsics:
+    """dronecap Intrinsics of a COLMAP camera (same pixel-centre convention, values unchanged)."""
+    p = [float(x) for x in params]
+    if model in ONE_PARAM_FOCAL:
+        fx = fy = p[0]
+        cx, cy, dist = p[1], p[2], tuple(p[3:])
+    else:
+        fx, fy, cx, cy, dist = p[0], p[1], p[2], p[3], tuple(p[4:])
+    return Intrinsics(fx, fy, cx, cy, width, height, model=model, distortion=dist)
+
+
+def colmap_job(
+    emit: Callable[[tuple[Any, ...]], None],
+    work: str,
+    names: list[str],
+    options: dict[str, Any],
+    camera: tuple[str, list[float]] | None,
+) -> dict[str, Any]:
+    """Child-process body: extract, match, map, extend. Returns a JSON-able summary.
+
+    Emits ("phase", name, registered_so_far) when a phase starts and ("registered", k) when the
+    mapper registers k more frames. The summary holds per-image keypoints, matching info,
+    model sizes, the chosen model's folder ("best", or None) and seconds per phase.
+    """
+    opts = SfmOptions(**options)
+    root = Path(work)
+    db, images = root / "database.db", root / "images"
+    times: dict[str, float] = {}
+    out: dict[str, Any] = {"times": times, "models": {}, "best": None, "stopped": None}
+
+    def phase(name: str, registered: int = 0) -> float:
+        emit(("phase", name, registered))
+        return time.perf_counter()
+
+    t = phase("extract")
+    out["keypoints"] = extract(db, images, names, opts, camera)
+    times["extract"] = time.perf_counter() - t
+    usable = [n for n in names if out["keypoints"].get(n, 0) >= MIN_KEYPOINTS]
+    if len(usable) < 2:
+        out["stopped"] = f"only {len(usable)} frame(s) have at least {MIN_KEYPOINTS} SIFT keypoints"
+        return out
+
+    t = phase("match")
+    out["match"] = match(db, root, opts, len(names))
+    times["match"] = time.perf_counter() - t
+    if out["match"]["verified_pairs"] == 0:
+        out["stopped"] = "no pair of frames could be matched with a consistent geometry"
+        return out
+
+    t = phase("map")
+    sizes = incremental_map(
+        db, images, root / "models", opts, camera is not None, lambda k: emit(("registered", k))
+    )
+    times["map"] = time.perf_counter() - t
+    out["models"] = {str(k): v for k, v in sizes.items()}
+    if not sizes:
+        out["stopped"] = "the mapper found no initial pair with enough inliers and baseline"
+        return out
+    best = max(sizes, key=lambda k: sizes[k])
+    out["best"] = str(root / "models" / str(best))
+    out["best_size_before_extend"] = sizes[best]
+    if opts.extend and sizes[best] < len(usable):
+        t = phase("extend", sizes[best])
+        ext = incremental_map(
+            db,
+            images,
+            root / "extended",
+            opts,
+            camera is not None,
+            lambda k: emit(("registered", k)),
+            input_path=root / "models" / str(best),
+        )
+        times["extend"] = time.perf_counter() - t
+        if ext and max(ext.values()) > sizes[best]:
+            k = max(ext, key=lambda j: ext[j])
+            out["best"] = str(root / "extended" / str(k))
+    return out
+
+
+@dataclass
+class ColmapResult:
+    """What came back from COLMAP for one flight."""
+
+    names: list[str]  # work-folder name of each input frame, in flight order
+    summary: dict[str, Any]  # colmap_job's summary
+    reconstruction: Any = None  # pycolmap.Reconstruction of the chosen model, or None
+    times: dict[str, float] = field(default_factory=dict)
+
+
+def reconstruct(
+    images: np.ndarray,
+    work: Path,
+    opts: SfmOptions,
+    intrinsics: Intrinsics | None,
+    progress: bool = True,
+) -> ColmapResult:
+    """Run COLMAP on ``images`` (uint8 [N, H, W, C], flight order) inside ``work``.
+
+    ``work`` is emptied first. Raises ChildCrash if COLMAP dies; every other failure to
+    reconstruct is described in the returned summary's "stopped".
+    """
+    import cv2
+    import pycolmap
+    from tqdm import tqdm
+
+    if work.exists():
+        shutil.rmtree(work)
+    (work / "images").mkdir(parents=True)
+    names = image_names(len(images))
+    t = time.perf_counter()
+    for name, im in zip(names, images, strict=True):
+        gray = im[..., 0] if im.shape[-1] == 1 else cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)
+        cv2.imwrite(str(work / "images" / name), gray)
+    times = {"write_images": time.perf_counter() - t}
+
+    bar = tqdm(total=len(names), desc="sfm", unit="frame", disable=not progress)
+
+    def on_event(ev: tuple[Any, ...]) -> None:
+        if ev[0] == "phase":
+            bar.set_description(f"sfm {ev[1]}")
+            bar.n = ev[2]
+            bar.refresh()
+        elif ev[0] == "registered":
+            bar.update(ev[1])
+
+    camera = None if intrinsics is None else colmap_camera(intrinsics)
+    try:
+        summary = run_isolated(
+            "dronecap.sfm.reconstruct:colmap_job",
+            {"work": str(work), "names": names, "options": opts.to_dict(), "camera": camera},
+            on_event,
+            work / "colmap.log",
+        )
+    finally:
+        bar.close()
+    times.update(summary["times"])
+    rec = None if summary["best"] is None else pycolmap.Reconstruction(summary["best"])
+    return ColmapResult(names=names, summary=summary, reconstruction=rec, times=times)

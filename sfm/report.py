@@ -1,0 +1,101 @@
+"""The SfM report: what registered, what was dropped and where in the flight, quality, timing.
+
+The report is a JSON-able dict (stored as ``sfm/report.json``); :func:`format_report` renders
+it for the terminal. docs/sfm.md explains each field.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+ADVICE = (
+    "try: more sequential overlap (--overlap 20) or --matcher exhaustive; keep more frames at "
+    "ingest (fewer dropped, less motion between frames); give known intrinsics in frames.h5; "
+    "more features (--max-features 4096)"
+)
+
+
+def drop_reason(keypoints: int, partners: int, min_keypoints: int) -> str:
+    """Why a frame is missing from the model, from its keypoint and verified-partner counts."""
+    if keypoints < min_keypoints:
+        return f"textureless ({keypoints} keypoints)"
+    if partners == 0:
+        return "no verified match with any other frame"
+    return f"matched with {partners} frame(s) but could not be registered"
+
+
+def dropped_runs(dropped: np.ndarray, n: int) -> list[dict[str, Any]]:
+    """Group dropped frame indices into consecutive runs and place each in the flight.
+
+    Args:
+        dropped: int [D] sorted indices (0..n-1) of frames missing from the model.
+        n: number of frames in the flight.
+
+    Returns:
+        one dict per run: first, last, count, and "where" (start / middle / end of the flight,
+        with the run's position as a percentage of the flight).
+    """
+    runs: list[dict[str, Any]] = []
+    for i in np.asarray(dropped, dtype=np.int64):
+        if runs and i == runs[-1]["last"] + 1:
+            runs[-1]["last"] = int(i)
+            runs[-1]["count"] += 1
+        else:
+            runs.append({"first": int(i), "last": int(i), "count": 1})
+    for r in runs:
+        mid = 100.0 * (r["first"] + r["last"]) / 2 / max(n - 1, 1)
+        place = "start" if r["first"] == 0 else "end" if r["last"] == n - 1 else "middle"
+        r["where"] = f"{place} ({mid:.0f}% into the flight)"
+    return runs
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """Human-readable multi-line summary of a report dict."""
+    lines = [
+        f"sfm {report['status']}: {report['registered']}/{report['frames_total']} frames registered"
+        f" ({100 * report['registration_rate']:.1f}%)"
+    ]
+    if report.get("message"):
+        lines.append(f"  {report['message']}")
+    q = report.get("quality")
+    if q:
+        lines.append(
+            f"  points {q['points']} ({q['points_kept']} kept for bounds), mean track length "
+            f"{q['mean_track_length']:.2f}, mean reprojection error "
+            f"{q['mean_reprojection_error_px']:.3f} px"
+        )
+    cam = report.get("camera")
+    if cam:
+        dist = f" distortion {cam['distortion']}" if cam["distortion"] else ""
+        fixed = "fixed" if cam["fixed"] else "estimated"
+        lines.append(
+            f"  camera {cam['model']} ({fixed}) fx={cam['fx']:.2f} fy={cam['fy']:.2f} "
+            f"cx={cam['cx']:.2f} cy={cam['cy']:.2f}{dist}"
+        )
+    models = report.get("models")
+    if models:
+        lines.append(f"  models found (frames each): {models}; kept the largest")
+    for r in report.get("dropped_runs", [])[:10]:
+        span = f"{r['first']}" if r["count"] == 1 else f"{r['first']}-{r['last']}"
+        lines.append(f"  dropped frames {span} ({r['count']}) at the {r['where']}")
+    reasons: dict[str, int] = {}
+    for d in report.get("dropped", []):
+        key = d["reason"].split(" (")[0]
+        reasons[key] = reasons.get(key, 0) + 1
+    if reasons:
+        lines.append("  why: " + ", ".join(f"{k}: {v}" for k, v in reasons.items()))
+    acc = report.get("accuracy")
+    if acc and "error" in acc:
+        lines.append(f"  accuracy: {acc['error']}")
+    elif acc:
+        lines.append(
+            f"  vs ground truth: ATE {acc['ate_rmse']:.4f} ({acc['ate_percent']:.2f}% of extent "
+            f"{acc['extent']:.3f}), rotation error median {acc['rot_median_deg']:.3f} deg, max "
+            f"{acc['rot_max_deg']:.3f} deg, registered {100 * acc['registration_rate']:.1f}%"
+        )
+    t = report.get("times", {})
+    if t:
+        lines.append("  time: " + ", ".join(f"{k} {v:.1f}s" for k, v in t.items()))
+    return "\n".join(lines)
