@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from dronecap.datasets.blender import import_blender
+from dronecap.datasets.blender import import_blender, opengl_to_opencv
 
 BOX = np.array([[-0.3, -0.2, -0.1], [0.3, 0.2, 0.4]])  # the synthetic scene's object (world units)
 BOX_RGB = (200, 30, 60)
@@ -66,6 +66,12 @@ def make_box_scene(root: Path, size: int = 48, n_train: int = 24, n_test: int = 
         data = {"camera_angle_x": angle_x, "frames": frames}
         (root / f"transforms_{split}.json").write_text(json.dumps(data))
     return root
+
+
+@pytest.fixture(scope="session")
+def cv_lookat():
+    """cv_lookat(eye [3], target [3]) -> camera-to-world 4x4 in OpenCV axes, world up +z."""
+    return lambda eye, target: opengl_to_opencv(gl_lookat(np.asarray(eye, float), target))
 
 
 @pytest.fixture(scope="session")

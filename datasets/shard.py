@@ -1,0 +1,221 @@
+"""Shards for federated training: the train images of a dataset partitioned over K drones.
+
+Two schemes:
+
+- ``iid``: a seeded shuffle of the train images, cut into K parts whose sizes differ by at most 1;
+- ``sector``: each drone gets a contiguous angular sector of viewpoints — the azimuth of the
+  camera centre around the scene centre (the AABB's centre, or the cameras' common look-at
+  point without one), measured about the scene's up axis (the mean of the cameras' up vectors,
+  -y in OpenCV axes). The circle is cut at the widest gap between neighbouring views, then into
+  K runs of equal image counts, so some sides of the scene stay unseen by each drone (the
+  paper's non-IID setup: lego, 4 drones x 25 images).
+
+Each shard is a dataset file ``client_K.h5`` (kind "shard") holding that drone's train images plus
+the common test set; ``shards/<scheme>`` marks each frame's client (-1 for test frames) and
+``extra/parent_index`` its index in the source dataset. ``summary.json`` says which views went
+where. The folder is written atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from dronecap.datasets.bounds import lookat_point
+from dronecap.datasets.format import SPLITS, Dataset, open_dataset, provenance, write_dataset
+
+from dronecap.errors import InputError
+from dronecap.files import atomic_output, sha256_file
+
+SCHEMES = ("iid", "sector")
+
+
+def scene_up(poses: np.ndarray) -> np.ndarray:
+    """The scene's up axis: the normalised mean of the cameras' up vectors.
+
+    Args:
+        poses: float64 [N, 4, 4] camera-to-world, OpenCV axes (camera up = -y column).
+
+    Returns:
+        float64 [3] unit vector. When the cameras' up vectors cancel out (less than 0.1 in mean
+        length), the normal of the plane the camera centres spread in, turned towards that mean.
+    """
+    mean = -poses[:, :3, 1].mean(0)
+    if np.linalg.norm(mean) >= 0.1:
+        return mean / np.linalg.norm(mean)
+    centres = poses[:, :3, 3] - poses[:, :3, 3].mean(0)
+    normal = np.linalg.svd(centres, full_matrices=False)[2][-1]
+    return normal if normal @ mean >= 0 else -normal
+
+
+def azimuths(centres: np.ndarray, origin: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Azimuth of points around ``origin`` about the axis ``up``.
+
+    Args:
+        centres: float [N, 3] points (camera centres).
+        origin: float [3] the scene centre.
+        up: float [3] unit axis.
+
+    Returns:
+        float64 [N] radians in [0, 2 pi), counter-clockwise seen from above, 0 along the world
+        axis least aligned with ``up`` (projected onto the horizontal plane).
+    """
+    e1 = np.eye(3)[np.argmin(np.abs(up))]
+    e1 = e1 - (e1 @ up) * up
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    r = centres - origin
+    return np.mod(np.arctan2(r @ e2, r @ e1), 2 * np.pi)
+
+
+def iid_assignment(n: int, clients: int, seed: int) -> np.ndarray:
+    """Seeded shuffle of n items cut into ``clients`` parts (sizes differ by at most 1).
+
+    Returns:
+        int64 [n] client of each item.
+    """
+    perm = np.random.default_rng(seed).permutation(n)
+    out = np.empty(n, np.int64)
+    for k, part in enumerate(np.array_split(perm, clients)):
+        out[part] = k
+    return out
+
+
+def sector_assignment(az: np.ndarray, clients: int) -> tuple[np.ndarray, np.ndarray]:
+    """Contiguous angular sectors with equal image counts.
+
+    The views are ordered by azimuth, the circle is opened at the widest gap between neighbours,
+    and the run is cut into ``clients`` parts whose sizes differ by at most 1.
+
+    Args:
+        az: float [n] azimuths in radians, [0, 2 pi).
+        clients: number of sectors.
+
+    Returns:
+        (int64 [n] client of each view, float64 [clients, 2] each sector's (first, last) view
+        azimuth in radians, counter-clockwise; last < first when the sector wraps past 0).
+    """
+    order = np.argsort(az, kind="stable")
+    gaps = np.diff(np.r_[az[order], az[order[0]] + 2 * np.pi])
+    order = np.roll(order, -(int(np.argmax(gaps)) + 1))  # start just after the widest gap
+    out = np.empty(len(az), np.int64)
+    ranges = np.empty((clients, 2))
+    for k, part in enumerate(np.array_split(order, clients)):
+        out[part] = k
+        ranges[k] = az[part[0]], az[part[-1]]
+    return out, ranges
+
+
+def shard_dataset(
+    in_path: str | Path,
+    out_dir: str | Path,
+    clients: int,
+    scheme: str,
+    seed: int = 0,
+) -> Path:
+    """Partition a dataset's train images over ``clients`` drones; write one file per drone.
+
+    Args:
+        in_path: a dataset (kind "dataset") with poses and a split.
+        out_dir: folder to write (replaced atomically): client_K.h5 files and summary.json.
+        clients: number of drones K >= 1.
+        scheme: "iid" or "sector".
+        seed: seed of the iid shuffle (recorded for both schemes).
+
+    Raises:
+        InputError: unknown scheme, fewer train images than clients, no poses or split, or
+            cameras with no azimuth spread around the up axis.
+    """
+    in_path, out_dir = Path(in_path), Path(out_dir)
+    if scheme not in SCHEMES:
+        raise InputError(f"unknown shard scheme {scheme!r}: use one of {', '.join(SCHEMES)}")
+    if clients < 1:
+        raise InputError(f"--clients must be at least 1, got {clients}")
+    ds = open_dataset(in_path, kinds=("dataset",))
+    if ds.poses is None:
+        raise InputError("has no camera poses to shard by", in_path)
+    if ds.split is None:
+        raise InputError("has no train/test split (run `dronecap split` first)", in_path)
+    train, test = ds.indices("train"), ds.indices("test")
+    if len(train) < clients:
+        raise InputError(
+            f"{clients} clients need at least {clients} train images, found {len(train)}", in_path
+        )
+    centre = ds.aabb.mean(0) if ds.aabb is not None else lookat_point(ds.poses)
+    up = scene_up(ds.poses[train])
+    az = azimuths(ds.poses[train, :3, 3], centre, up)
+    ranges = None
+    if scheme == "iid":
+        owner = iid_assignment(len(train), clients, seed)
+    else:
+        flat = ds.poses[train, :3, 3] - centre
+        horizontal = np.linalg.norm(flat - np.outer(flat @ up, up), axis=1)
+        if horizontal.max() <= 1e-9 * max(1.0, np.abs(flat).max()):
+            raise InputError("cameras have no azimuth spread around the up axis", in_path)
+        owner, ranges = sector_assignment(az, clients)
+    assignment = np.full(ds.n, -1, np.int16)
+    assignment[train] = owner
+    digest = sha256_file(in_path)
+    summary: dict[str, Any] = {
+        "dataset": str(in_path),
+        "dataset_sha256": digest,
+        "scheme": scheme,
+        "clients": clients,
+        "seed": seed,
+        "scene_centre": centre.tolist(),
+        "up": up.tolist(),
+        "test_views": [_name(ds, i) for i in test],
+        "shards": [],
+    }
+    params = {"scheme": scheme, "clients": clients, "seed": seed}
+    prov = provenance("shard", params, {in_path.name: digest})
+    prov["parent"] = ds.provenance
+    with atomic_output(out_dir) as tmp:
+        tmp.mkdir()
+        for k in range(clients):
+            mine = train[owner == k]
+            entry = {
+                "client": k,
+                "file": f"client_{k}.h5",
+                "n_train": int(len(mine)),
+                "views": [_name(ds, i) for i in mine],
+                "parent_index": mine.tolist(),
+            }
+            if ranges is not None:
+                first, last = np.degrees(ranges[k])
+                entry["azimuth_deg"] = [round(float(first), 3), round(float(last), 3)]
+                entry["span_deg"] = round(float((last - first) % 360), 3)
+            summary["shards"].append(entry)
+            idx = np.sort(np.concatenate([mine, test]))
+            write_dataset(tmp / entry["file"], _shard(ds, idx, assignment, k, prov, in_path))
+        (tmp / "summary.json").write_text(json.dumps(summary, indent=1))
+    return out_dir
+
+
+def _name(ds: Dataset, i: int) -> str:
+    return ds.names[i] if ds.names is not None else f"frame_{i:06d}"
+
+
+def _shard(
+    ds: Dataset,
+    idx: np.ndarray,
+    assignment: np.ndarray,
+    client: int,
+    prov: dict[str, Any],
+    in_path: Path,
+) -> Dataset:
+    """The shard of ``client``: frames ``idx`` of ``ds`` with their assignment and provenance."""
+    sub = ds.subset(idx)
+    sub.split = np.where(assignment[idx] == client, SPLITS["train"], SPLITS["test"]).astype(np.int8)
+    params = prov["params"]
+    return dataclasses.replace(
+        sub,
+        kind="shard",
+        shards={params["scheme"]: assignment[idx]},
+        extra={"parent_index": idx},
+        provenance=prov,
+        attrs={**ds.attrs, **params, "client": client, "parent": in_path.name},
+    )
