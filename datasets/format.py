@@ -114,6 +114,10 @@ class Dataset:
         """(height, width) in pixels."""
         return int(self.images.shape[1]), int(self.images.shape[2])
 
+    def frame_name(self, i: int) -> str:
+        """Name of frame ``i``: its source name, or ``frame_000123`` when the file has none."""
+        return self.names[i] if self.names is not None else f"frame_{i:06d}"
+
     def indices(self, split: str) -> np.ndarray:
         """Frame indices of a split ("train", "val", "test"), int64 [M]."""
         if self.split is None:

@@ -167,7 +167,7 @@ def shard_dataset(
         "seed": seed,
         "scene_centre": centre.tolist(),
         "up": up.tolist(),
-        "test_views": [_name(ds, i) for i in test],
+        "test_views": [ds.frame_name(i) for i in test],
         "shards": [],
     }
     params = {"scheme": scheme, "clients": clients, "seed": seed}
@@ -181,7 +181,7 @@ def shard_dataset(
                 "client": k,
                 "file": f"client_{k}.h5",
                 "n_train": int(len(mine)),
-                "views": [_name(ds, i) for i in mine],
+                "views": [ds.frame_name(i) for i in mine],
                 "parent_index": mine.tolist(),
             }
             if ranges is not None:
@@ -193,10 +193,6 @@ def shard_dataset(
             write_dataset(tmp / entry["file"], _shard(ds, idx, assignment, k, prov, in_path))
         (tmp / "summary.json").write_text(json.dumps(summary, indent=1))
     return out_dir
-
-
-def _name(ds: Dataset, i: int) -> str:
-    return ds.names[i] if ds.names is not None else f"frame_{i:06d}"
 
 
 def _shard(
