@@ -91,66 +91,48 @@ def assert_one_line_naming(err: pytest.ExceptionInfo, path: Path) -> None:
     assert str(path) in msg
 
 
-def test_missing_file(tmp_path: Path) -> None:
-    p = tmp_path / "nothing.h5"
-    with pytest.raises(DatasetError) as err:
-        open_dataset(p)
-    assert_one_line_naming(err, p)
-
-
-def test_corrupt_file(tmp_path: Path) -> None:
-    p = tmp_path / "corrupt.h5"
-    p.write_bytes(np.random.default_rng(1).bytes(4096))
-    with pytest.raises(DatasetError) as err:
-        open_dataset(p)
-    assert_one_line_naming(err, p)
-
-
-def test_foreign_hdf5_file(tmp_path: Path) -> None:
-    p = tmp_path / "foreign.h5"
-    with h5py.File(p, "w") as f:
-        f["images"] = np.zeros((1, 2, 2, 3), np.uint8)
-        f.attrs["format"] = "someone-else"
-    with pytest.raises(DatasetError) as err:
-        open_dataset(p)
-    assert_one_line_naming(err, p)
-    assert "someone-else" in str(err.value)
-
-
-def test_truncated_file(tmp_path: Path) -> None:
-    p = write_dataset(tmp_path / "trunc.h5", full_dataset())
-    data = p.read_bytes()
-    p.write_bytes(data[: len(data) // 2])
-    with pytest.raises(DatasetError) as err:
-        open_dataset(p)
-    assert_one_line_naming(err, p)
-
-
-def test_newer_version(tmp_path: Path) -> None:
-    p = write_dataset(tmp_path / "new.h5", full_dataset())
+def make_bad_file(p: Path, case: str) -> None:
+    """Write a file at ``p`` that is broken in the way ``case`` names."""
+    if case == "missing":
+        return
+    if case == "corrupt":
+        p.write_bytes(np.random.default_rng(1).bytes(4096))
+        return
+    if case == "foreign":
+        with h5py.File(p, "w") as f:
+            f["images"] = np.zeros((1, 2, 2, 3), np.uint8)
+            f.attrs["format"] = "someone-else"
+        return
+    write_dataset(p, full_dataset())
+    if case == "truncated":
+        p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+        return
     with h5py.File(p, "a") as f:
-        f.attrs["format_version"] = FORMAT_VERSION + 1
-    with pytest.raises(DatasetError) as err:
-        open_dataset(p)
-    assert_one_line_naming(err, p)
-    assert "newer" in str(err.value)
+        if case == "newer":
+            f.attrs["format_version"] = FORMAT_VERSION + 1
+        elif case == "no_images":
+            del f["images"]
 
 
-def test_missing_images(tmp_path: Path) -> None:
-    p = write_dataset(tmp_path / "noimg.h5", full_dataset())
-    with h5py.File(p, "a") as f:
-        del f["images"]
-    with pytest.raises(DatasetError) as err:
-        open_dataset(p)
-    assert_one_line_naming(err, p)
-    assert "images" in str(err.value)
-
-
-def test_wrong_kind_is_refused(tmp_path: Path) -> None:
-    p = write_dataset(tmp_path / "posed.h5", full_dataset())
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("missing", "no such file"),
+        ("corrupt", "not a readable HDF5 file"),
+        ("foreign", "someone-else"),
+        ("truncated", "truncated"),
+        ("newer", "newer"),
+        ("no_images", "images"),
+        ("wrong_kind", "expected one of ['dataset', 'shard']"),
+    ],
+)
+def test_bad_files_fail_with_one_line(tmp_path: Path, case: str, message: str) -> None:
+    p = tmp_path / f"{case}.h5"
+    make_bad_file(p, case)
     with pytest.raises(DatasetError) as err:
         open_dataset(p, kinds=("dataset", "shard"))
     assert_one_line_naming(err, p)
+    assert message in str(err.value)
 
 
 def test_inconsistent_shapes_are_refused_before_writing(tmp_path: Path) -> None:
