@@ -255,7 +255,7 @@ class _CppEncode(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, table, resolutions, offsets, log2_hashmap, mode):  # noqa: D102
         ext = load_extension()
-        x = _clamp_unit(x).contiguous()
+        x = x.float().contiguous()  # the kernel clamps (NaN -> 0) itself
         ctx.save_for_backward(x)
         ctx.args = (table.shape[0], table.shape[1], resolutions, offsets, log2_hashmap, mode)
         return ext.forward(x, table.contiguous(), resolutions, offsets, log2_hashmap)

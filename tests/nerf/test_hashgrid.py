@@ -113,14 +113,16 @@ def test_gradient_check_tiny(cpp, backend):
 def test_largest_level_hash_has_no_overflow(cpp, backend):
     res, log2_t = 2**15, 22
     offsets = level_offsets([res], log2_t)
-    table = torch.arange(offsets[-1], dtype=torch.float32)[:, None]
-    coords = [(32768, 32768, 32768), (32767, 1, 32768), (12345, 32000, 29999), (0, 32768, 7)]
+    rows = torch.arange(offsets[-1], dtype=torch.float32)
+    table = torch.stack([rows, -rows], dim=1)  # F = 2: the C++ kernel's vectorised path
+    coords = [(32768, 32768, 32768), (32767, 1, 32768), (12345, 32000, 29999), (0, 32768, 7)] * 5
     # x = c / 2^15 is exact in float32 and lands exactly on corner c (weight 1).
     x = torch.tensor(coords, dtype=torch.float32) / res
     fn = hash_encode_cpp if backend == "cpp" else hash_encode_reference
     out = fn(x, table, [res], offsets, log2_t)
     expected = [((a * 1) ^ (b * 2654435761) ^ (c * 805459861)) % 2**log2_t for a, b, c in coords]
     assert out[:, 0].long().tolist() == expected
+    assert (-out[:, 1]).long().tolist() == expected
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
