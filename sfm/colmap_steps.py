@@ -210,6 +210,7 @@ def incremental_map(
     )
     sizes = {}
     for k, rec in models.items():
-        rec.write(out_dir / str(k))  # pycolmap writes some models only at the end; be sure
+        (out_dir / str(k)).mkdir(exist_ok=True)
+        rec.write(out_dir / str(k))  # the pipeline does not write every model itself
         sizes[int(k)] = rec.num_reg_images()
     return sizes

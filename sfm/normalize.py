@@ -136,7 +136,7 @@ def normalize_scene(
     scale = 1.0 / half if half > 0 else 1.0
     m = np.eye(4)
     m[:3, :3] = scale * rot
-    m[:3, 3] = -scale * rot @ centre
+    m[:3, 3] = -scale * centre  # centre is already in the rotated frame
     lo_s, hi_s = scale * (lo - centre), scale * (hi - centre)
     pad = st.margin * float((hi_s - lo_s).max())
     # a flat side (e.g. one row of cameras and no points) still gets a positive thickness

@@ -95,7 +95,10 @@ def colmap_job(
     times["map"] = time.perf_counter() - t
     out["models"] = {str(k): v for k, v in sizes.items()}
     if not sizes:
-        out["stopped"] = "the mapper found no initial pair with enough inliers and baseline"
+        out["stopped"] = (
+            "the mapper found no initial pair with enough inliers and baseline"
+            " (a camera turning in place or hovering gives no baseline)"
+        )
         return out
     best = max(sizes, key=lambda k: sizes[k])
     out["best"] = str(root / "models" / str(best))

@@ -46,6 +46,9 @@ def dropped_runs(dropped: np.ndarray, n: int) -> list[dict[str, Any]]:
             runs.append({"first": int(i), "last": int(i), "count": 1})
     for r in runs:
         mid = 100.0 * (r["first"] + r["last"]) / 2 / max(n - 1, 1)
+        if r["count"] == n:
+            r["where"] = "whole flight"
+            continue
         place = "start" if r["first"] == 0 else "end" if r["last"] == n - 1 else "middle"
         r["where"] = f"{place} ({mid:.0f}% into the flight)"
     return runs

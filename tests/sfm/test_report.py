@@ -1,0 +1,43 @@
+"""Report helpers: dropped-frame runs placed in the flight, reasons, printing."""
+
+from __future__ import annotations
+
+import numpy as np
+from dronecap.sfm.report import drop_reason, dropped_runs, format_report
+
+
+def test_dropped_runs_group_and_place_by_hand():
+    # 11 frames (0..10); dropped 0, 1 | 5 | 9, 10
+    runs = dropped_runs(np.array([0, 1, 5, 9, 10]), 11)
+    assert [(r["first"], r["last"], r["count"]) for r in runs] == [(0, 1, 2), (5, 5, 1), (9, 10, 2)]
+    # run centres: 0.5 / 10 = 5%, 5 / 10 = 50%, 9.5 / 10 = 95%
+    assert runs[0]["where"] == "start (5% into the flight)"
+    assert runs[1]["where"] == "middle (50% into the flight)"
+    assert runs[2]["where"] == "end (95% into the flight)"
+    assert dropped_runs(np.array([], np.int64), 5) == []
+    assert dropped_runs(np.arange(4), 4)[0]["where"] == "whole flight"
+
+
+def test_drop_reason():
+    assert drop_reason(3, 0, 16).startswith("textureless")
+    assert drop_reason(300, 0, 16) == "no verified match with any other frame"
+    assert "2 frame(s)" in drop_reason(300, 2, 16)
+
+
+def test_format_report_mentions_the_essentials():
+    report = {
+        "status": "failed",
+        "registered": 3,
+        "frames_total": 10,
+        "registration_rate": 0.3,
+        "message": "only 30.0% registered",
+        "dropped": [{"reason": "textureless (0 keypoints)"}] * 7,
+        "dropped_runs": dropped_runs(np.arange(3, 10), 10),
+        "accuracy": {"error": "alignment impossible: collinear"},
+        "times": {"extract": 1.0},
+    }
+    text = format_report(report)
+    assert "3/10 frames registered (30.0%)" in text
+    assert "dropped frames 3-9 (7) at the end" in text
+    assert "textureless: 7" in text
+    assert "collinear" in text
