@@ -54,7 +54,7 @@ def carve_aabb(
     alpha: np.ndarray,
     poses: np.ndarray,
     intrinsics: Intrinsics,
-    grid: int = 64,
+    grid: int = 48,
     margin: float = 0.02,
     threshold: int = 0,
 ) -> np.ndarray | None:
