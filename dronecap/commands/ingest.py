@@ -1,0 +1,188 @@
+"""``dronecap ingest``: flight video (or image folder) -> 160x160 gray selected frames -> frames.h5.
+
+``dronecap ingest flight.mp4`` decodes, scores and selects, and writes ``frames.h5`` in the
+workspace. ``dronecap ingest --replay frames.h5 --min-motion 12`` re-runs only the selection on
+the score tables stored in the file (no decoding) and prints what would change; with ``-o`` it
+writes the re-selected frames when all of them are stored.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+HELP = "decode a flight video to 160x160 gray, select frames -> frames.h5"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of the command (selection flags are generated from SelectionParams)."""
+    from dronecap.capture.selection import SelectionParams
+
+    p.add_argument("source", nargs="?", help="video file or folder of images")
+    p.add_argument("-o", "--output", help="output frames file (default: WORKDIR/frames.h5)")
+    p.add_argument("--size", default="160", help="output size, '160' or 'WxH' (default: 160)")
+    p.add_argument(
+        "--crop",
+        default="center",
+        help="'center' (crop to the output aspect, default), 'stretch', or 'X,Y,W,H' in source px",
+    )
+    p.add_argument(
+        "--intrinsics",
+        help="source intrinsics 'fx,fy,cx,cy' (source pixels) or a calibration JSON (e.g. the "
+        "simulator's flight.json); default: SOURCE_STEM.json beside the video if it has "
+        "intrinsics; 'none' to ignore it",
+    )
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate of an image folder")
+    p.add_argument(
+        "--allow-truncated",
+        action="store_true",
+        help="ingest the frames a truncated video still holds instead of failing",
+    )
+    p.add_argument(
+        "--replay",
+        metavar="FRAMES_H5",
+        help="re-run only the selection on the scores stored in FRAMES_H5 (no decoding)",
+    )
+    g = p.add_argument_group("frame selection")
+    for f in dataclasses.fields(SelectionParams):
+        kind = int if f.name in ("max_gap", "target", "lookahead", "blur_window") else float
+        g.add_argument(
+            "--" + f.name.replace("_", "-"),
+            type=kind,
+            default=None,
+            help=f"{f.metadata['help']} (default: {f.default})",
+        )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Ingest a source, or replay a stored selection."""
+    from dronecap.capture.selection import SelectionParams
+    from dronecap.errors import InputError
+
+    fields = dataclasses.fields(SelectionParams)
+    changes = {f.name: getattr(args, f.name) for f in fields if getattr(args, f.name) is not None}
+    if args.replay:
+        return _replay(args, changes)
+    if not args.source:
+        raise InputError("give a video file or image folder to ingest (or --replay FRAMES_H5)")
+    return _ingest(args, SelectionParams().replace(**changes))
+
+
+def _ingest(args: argparse.Namespace, selection: object) -> int:
+    from dronecap import workspace
+    from dronecap.capture.framing import parse_size
+    from dronecap.capture.ingest import IngestParams, ingest, params_record, tables_to_extra
+    from dronecap.datasets import Dataset, Intrinsics, provenance, write_dataset
+    from dronecap.errors import InputError
+    from dronecap.files import sha256_file
+
+    source = Path(args.source)
+    try:
+        size = parse_size(args.size)
+    except ValueError as err:
+        raise InputError(f"--size: {err}") from None
+    intrinsics = args.intrinsics
+    if intrinsics is None:
+        intrinsics = _sidecar_calibration(source)
+    elif intrinsics.lower() == "none":
+        intrinsics = None
+    params = IngestParams(
+        size=size,
+        crop=args.crop,
+        fps=args.fps,
+        intrinsics=intrinsics,
+        allow_truncated=args.allow_truncated,
+        selection=selection,  # type: ignore[arg-type]
+    )
+    out = workspace.resolve(args.workdir, args.output, workspace.FRAMES)
+    result = ingest(source, params)
+    kept = result.kept_index
+    cam = result.camera
+    ds = Dataset(
+        kind="frames",
+        images=result.images,
+        names=result.names,
+        source_index=result.tables["source_index"][kept],
+        timestamps=result.tables["timestamp"][kept],
+        intrinsics=None
+        if cam is None
+        else Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height),
+        extra=tables_to_extra(result.tables, result.selection),
+        attrs=result.summary(),
+        provenance=provenance("ingest", params_record(params), {str(source): sha256_file(source)}),
+    )
+    write_dataset(out, ds)
+    for w in result.warnings:
+        print(f"dronecap ingest: warning: {w}", file=sys.stderr)
+    if intrinsics is not None and args.intrinsics is None:
+        print(f"intrinsics from {intrinsics}")
+    print(f"{result.summary_line()} -> {out}")
+    return 0
+
+
+def _sidecar_calibration(source: Path) -> str | None:
+    """``flight.json`` beside ``flight.mp4`` when it holds intrinsics (the simulator writes it)."""
+    side = source.with_suffix(".json")
+    if not source.is_file() or not side.is_file():
+        return None
+    try:
+        doc = json.loads(side.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return str(side) if isinstance(doc, dict) and isinstance(doc.get("intrinsics"), dict) else None
+
+
+def _replay(args: argparse.Namespace, changes: dict[str, object]) -> int:
+    import numpy as np
+
+    from dronecap.capture.ingest import extra_to_tables, tables_to_extra
+    from dronecap.capture.selection import SelectionParams, select_frames
+    from dronecap.datasets import open_dataset, write_dataset
+    from dronecap.errors import InputError
+
+    path = Path(args.replay)
+    ds = open_dataset(path, kinds=("frames",))
+    try:
+        tables = extra_to_tables(ds.extra)
+    except InputError as err:
+        raise InputError(str(err), path) from None
+    stored = ds.provenance.get("params", {}).get("selection", {})
+    known = {f.name for f in dataclasses.fields(SelectionParams)}
+    params = SelectionParams(**{k: v for k, v in stored.items() if k in known}).replace(**changes)
+    sel = select_frames(tables, params)
+    old_keep = np.asarray(ds.extra["keep"], bool)
+    n = len(sel.keep)
+    counts = sel.counts()
+    dropped = ", ".join(f"{k} {v}" for k, v in counts.items() if not k.startswith("kept"))
+    print(
+        f"replay of {path}: {n} decoded frames, kept {int(sel.keep.sum())} "
+        f"(stored selection kept {int(old_keep.sum())}); dropped: {dropped or 'none'}"
+        f"; min_motion {sel.min_motion:.2f} px"
+    )
+    if args.output is None:
+        return 0
+    missing = int((sel.keep & ~old_keep).sum())
+    if missing:
+        raise InputError(
+            f"{missing} newly kept frames were dropped at ingest, so their images are not stored;"
+            f" re-run `dronecap ingest SOURCE` with these options",
+            path,
+        )
+    stored_pos = np.flatnonzero(old_keep)  # decoded position of each stored image
+    sub = ds.subset(np.flatnonzero(np.isin(stored_pos, np.flatnonzero(sel.keep))))
+    sub.extra = tables_to_extra(tables, sel)
+    sub.attrs = {
+        **ds.attrs,
+        "kept": int(sel.keep.sum()),
+        "dropped": {k: v for k, v in counts.items() if not k.startswith("kept")},
+        "min_motion_used": sel.min_motion,
+        "replayed_from": str(path),
+    }
+    record = {**ds.provenance.get("params", {}), "selection": dataclasses.asdict(params)}
+    sub.provenance = {**ds.provenance, "params": record}
+    write_dataset(args.output, sub)
+    print(f"wrote {sub.n} frames -> {args.output}")
+    return 0
