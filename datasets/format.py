@@ -171,6 +171,10 @@ class Dataset:
         for name, (arr, shape) in per_frame.items():
             if arr is not None and tuple(arr.shape) != shape:
                 fail(f"{name} has shape {list(arr.shape)}, expected {list(shape)}")
+        if self.alpha is not None and self.alpha.dtype != np.uint8:
+            fail(f"alpha must be uint8, found {self.alpha.dtype}")
+        if self.split is not None and not np.isin(self.split, [-1, *SPLITS.values()]).all():
+            fail(f"split values must be -1, 0, 1 or 2, found {sorted(set(self.split.tolist()))}")
         for name, arr in self.shards.items():
             if tuple(arr.shape) != (n,):
                 fail(f"shards/{name} has shape {list(arr.shape)}, expected [{n}]")

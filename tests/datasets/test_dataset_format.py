@@ -135,13 +135,26 @@ def test_bad_files_fail_with_one_line(tmp_path: Path, case: str, message: str) -
     assert message in str(err.value)
 
 
-def test_inconsistent_shapes_are_refused_before_writing(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("poses", np.tile(np.eye(4), (2, 1, 1)), "poses has shape [2, 4, 4], expected [3, 4, 4]"),
+        ("alpha", np.zeros((3, 4, 5), np.float32), "alpha must be uint8"),
+        ("split", np.array([0, 2, 5]), "split values must be -1, 0, 1 or 2, found [0, 2, 5]"),
+        ("aabb", np.array([[0.0, 0, 0], [1, -1, 1]]), "max > min"),
+        ("background", (1.0,), "background has 1 values for 3 channels"),
+    ],
+)
+def test_inconsistent_fields_are_refused_before_writing(
+    tmp_path: Path, field: str, value: object, message: str
+) -> None:
     ds = full_dataset()
-    ds.poses = ds.poses[:2]
+    setattr(ds, field, value)
     p = tmp_path / "bad.h5"
     with pytest.raises(DatasetError) as err:
         write_dataset(p, ds)
     assert_one_line_naming(err, p)
+    assert message in str(err.value)
     assert not p.exists()
 
 
