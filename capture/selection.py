@@ -14,8 +14,9 @@ Rules, in order:
 2. Viewpoint change. Walking forward from the last kept frame, motion accumulates (the sum of
    the per-frame feature displacements, steps under ``motion_floor`` pixels counting as zero).
    Once it reaches ``min_motion`` pixels, the sharpest usable frame among those that reached it
-   within the next ``lookahead`` frames is kept: a sharp frame beats its blurred twin, and a
-   hovering drone (tiny motion) yields few frames. The others are ``redundant``.
+   within the next ``lookahead`` frames (and within half ``min_motion`` more motion) is kept:
+   a sharp frame beats its blurred twin, and a hovering drone (tiny motion) yields few frames.
+   The others are ``redundant``.
 3. Coverage. No two consecutive kept frames are more than ``max_gap`` source frames apart: when
    motion does not reach ``min_motion`` in time, the sharpest usable frame of the last
    ``lookahead`` frames before the gap limit is kept (reason ``kept_gap``). Only where no usable
@@ -129,7 +130,9 @@ def quality_reasons(tables: dict[str, np.ndarray], p: SelectionParams) -> np.nda
     return reason
 
 
-def select_frames(tables: dict[str, np.ndarray], params: SelectionParams) -> Selection:
+def select_frames(
+    tables: dict[str, np.ndarray], params: SelectionParams, available: np.ndarray | None = None
+) -> Selection:
     """Decide which of N decoded frames to keep, from their score tables alone.
 
     Args:
@@ -137,11 +140,15 @@ def select_frames(tables: dict[str, np.ndarray], params: SelectionParams) -> Sel
             (``motion`` in pixels from the previous decoded frame, NaN when unknown) plus
             ``source_index`` (int64, frame number in the source) and optionally ``readable``.
         params: the thresholds.
+        available: optional bool [N]; frames outside it are never kept (e.g. replaying a stored
+            selection among the frames whose images were stored). Default: all.
 
     Returns:
         a :class:`Selection` with the keep mask and a reason code for every frame.
     """
     quality = quality_reasons(tables, params)
+    if available is not None:
+        quality[(quality == KEPT) & ~np.asarray(available, bool)] = REDUNDANT
     if params.target is None:
         return _greedy(tables, quality, params)
     lo, hi = 0.0, float(np.nansum(np.asarray(tables["motion"], float))) + 1.0
@@ -186,7 +193,10 @@ def _greedy(tables: dict[str, np.ndarray], quality: np.ndarray, p: SelectionPara
         moved = within[travel[within] - travel[k] >= p.min_motion]
         if len(moved):
             j0 = moved[0]
-            pool = moved[src[moved] - src[j0] < p.lookahead]
+            close = (src[moved] - src[j0] < p.lookahead) & (
+                travel[moved] - travel[j0] <= 0.5 * p.min_motion
+            )
+            pool = moved[close]
             code = KEPT
         elif len(within) == len(later):
             break  # the rest of the flight is within max_gap of the last kept frame

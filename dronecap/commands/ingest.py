@@ -152,25 +152,25 @@ def _replay(args: argparse.Namespace, changes: dict[str, object]) -> int:
     stored = ds.provenance.get("params", {}).get("selection", {})
     known = {f.name for f in dataclasses.fields(SelectionParams)}
     params = SelectionParams(**{k: v for k, v in stored.items() if k in known}).replace(**changes)
-    sel = select_frames(tables, params)
     old_keep = np.asarray(ds.extra["keep"], bool)
+    free = select_frames(tables, params)  # what a re-ingest with these options would keep
+    sel = select_frames(tables, params, available=old_keep)  # among the stored images
     n = len(sel.keep)
     counts = sel.counts()
     dropped = ", ".join(f"{k} {v}" for k, v in counts.items() if not k.startswith("kept"))
     print(
-        f"replay of {path}: {n} decoded frames, kept {int(sel.keep.sum())} "
-        f"(stored selection kept {int(old_keep.sum())}); dropped: {dropped or 'none'}"
+        f"replay of {path}: {n} decoded frames, kept {int(sel.keep.sum())} of the "
+        f"{int(old_keep.sum())} stored; dropped: {dropped or 'none'}"
         f"; min_motion {sel.min_motion:.2f} px"
     )
+    extra = int((free.keep & ~old_keep).sum())
+    if extra:
+        print(
+            f"note: {extra} frames that these options would keep were not stored; re-run "
+            "`dronecap ingest SOURCE` with them to get those images"
+        )
     if args.output is None:
         return 0
-    missing = int((sel.keep & ~old_keep).sum())
-    if missing:
-        raise InputError(
-            f"{missing} newly kept frames were dropped at ingest, so their images are not stored;"
-            f" re-run `dronecap ingest SOURCE` with these options",
-            path,
-        )
     stored_pos = np.flatnonzero(old_keep)  # decoded position of each stored image
     sub = ds.subset(np.flatnonzero(np.isin(stored_pos, np.flatnonzero(sel.keep))))
     sub.extra = tables_to_extra(tables, sel)
