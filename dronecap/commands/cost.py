@@ -1,0 +1,219 @@
+"""`dronecap cost`: the GAP9 cost report of a configuration, the Table II check, the budget search.
+
+dronecap cost [--preset NAME | RUN_DIR] [--platform gap9.yaml] [--set field=value ...]
+              [--json out.json]
+dronecap cost --table2
+dronecap cost --search --budget-l3 32MB [--budget-l2 1.5MB] [--budget-l1 128kB]
+              [--runs runs/*/metrics.json] [--plot pareto.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+HELP = "GAP9 memory/compute/latency/energy report for a configuration"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of the command."""
+    p.add_argument(
+        "run_dir",
+        nargs="?",
+        help="a training run dir (its metrics.json or config.json gives the configuration)",
+    )
+    p.add_argument("--preset", help="a named preset (default: tiny-dronerf)")
+    p.add_argument("--platform", help="platform YAML (default: the shipped nerf/gap9.yaml)")
+    p.add_argument(
+        "--set",
+        dest="sets",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override a TrainConfig field (repeatable)",
+    )
+    p.add_argument(
+        "--json",
+        help="write the report here (default: RUN_DIR/cost.json, else WORKDIR/cost.json)",
+    )
+    p.add_argument("--spp", type=float, default=13.0, help="samples per ray/pixel (default 13)")
+    p.add_argument("--images", type=int, help="training images stored aboard (default: config)")
+    p.add_argument(
+        "--table2", action="store_true", help="compare the model with the paper's Table II"
+    )
+    p.add_argument("--search", action="store_true", help="list configurations fitting budgets")
+    p.add_argument("--budget-l3", help="untiled footprint budget, e.g. 32MB (search)")
+    p.add_argument("--budget-l2", help="L2 peak budget, e.g. 1.5MB (search)")
+    p.add_argument("--budget-l1", help="L1 budget incl. stacks, e.g. 128kB (search)")
+    p.add_argument("--runs", nargs="*", default=[], help="metrics.json files of measured runs")
+    p.add_argument("--plot", help="Pareto PNG (default: WORKDIR/pareto.png)")
+    p.add_argument("--top", type=int, default=25, help="configurations listed by --search")
+    p.add_argument(
+        "--tolerance-db",
+        type=float,
+        default=0.25,
+        help="chosen = smallest footprint within this many dB of the best fitting PSNR",
+    )
+
+
+def _platform(args: argparse.Namespace):
+    from dronecap.errors import InputError
+    from dronecap.nerf.gap9_platform import load_platform
+
+    if args.platform is None:
+        return load_platform()
+    try:
+        return load_platform(args.platform)
+    except FileNotFoundError as err:
+        raise InputError("platform file not found", args.platform) from err
+    except ValueError as err:
+        raise InputError(str(err), args.platform) from err
+
+
+def _config(args: argparse.Namespace):
+    """(TrainConfig, default JSON path) from RUN_DIR, --preset or the default preset, + --set."""
+    from dronecap import workspace
+    from dronecap.errors import InputError
+    from dronecap.nerf.config import preset
+    from dronecap.nerf.gap9_search import config_from_dict, parse_set
+
+    if args.run_dir and args.preset:
+        raise InputError("give either RUN_DIR or --preset, not both")
+    if args.run_dir:
+        run = Path(args.run_dir)
+        for name in ("config.json", "metrics.json"):
+            f = run / name
+            if f.exists():
+                try:
+                    doc = json.loads(f.read_text())
+                except ValueError as err:
+                    raise InputError(f"not JSON ({err})", f) from err
+                cfg_d = doc.get("config", doc) if isinstance(doc, dict) else None
+                if not isinstance(cfg_d, dict):
+                    raise InputError("no configuration dict inside", f)
+                cfg = config_from_dict(cfg_d)
+                break
+        else:
+            raise InputError("no config.json or metrics.json with a 'config' here", run)
+        default_out = run / "cost.json"
+    else:
+        try:
+            cfg = preset(args.preset or "tiny-dronerf")
+        except KeyError as err:
+            raise InputError(str(err.args[0])) from err
+        default_out = workspace.resolve(args.workdir, None, "cost.json")
+    try:
+        cfg = parse_set(cfg, args.sets)
+    except (ValueError, TypeError) as err:
+        raise InputError(str(err)) from err
+    return cfg, default_out
+
+
+def _bytes(text: str | None, flag: str) -> int | None:
+    from dronecap.errors import InputError
+    from dronecap.nerf.gap9_platform import parse_bytes
+
+    if text is None:
+        return None
+    try:
+        return parse_bytes(text)
+    except ValueError as err:
+        raise InputError(f"{flag}: {err}") from err
+
+
+def _report(args: argparse.Namespace) -> int:
+    from dronecap.errors import InputError
+    from dronecap.files import atomic_output
+    from dronecap.nerf.gap9 import cost_report, format_report
+
+    cfg, default_out = _config(args)
+    try:
+        rep = cost_report(cfg, _platform(args), samples_per_pixel=args.spp, n_images=args.images)
+    except (ValueError, ZeroDivisionError) as err:
+        raise InputError(f"impossible configuration: {err}") from err
+    print(format_report(rep))
+    out = Path(args.json) if args.json else default_out
+    with atomic_output(out) as tmp:
+        tmp.write_text(json.dumps(rep, indent=1))
+    print(f"wrote {out}")
+    return 0
+
+
+def _table2(args: argparse.Namespace) -> int:
+    from dronecap.nerf.gap9_paper import table2
+
+    rows = table2(_platform(args))
+    head = f"{'Mem paper':>9} {'model':>7} {'err':>7}"
+    print(f"{'row':<12} {head}   {head.replace('Mem', 'GOp')}")
+    for r in rows:
+        print(
+            f"{r['name']:<12} {r['mem_paper']:>9.0f} {r['mem_model']:>7.1f} {r['mem_err']:>+7.1%}"
+            f"   {r['gop_paper']:>9.2f} {r['gop_model']:>7.3f} {r['gop_err']:>+7.1%}"
+        )
+    worst_m = max(abs(r["mem_err"]) for r in rows)
+    worst_g = max(abs(r["gop_err"]) for r in rows)
+    print(f"worst |error|: memory {worst_m:.1%}, compute {worst_g:.1%} (MB = 1e6 B, GOp = 1e9 op)")
+    return 0
+
+
+def _search(args: argparse.Namespace) -> int:
+    from dronecap import workspace
+    from dronecap.errors import InputError
+    from dronecap.nerf.gap9_search import (
+        Budget,
+        choose,
+        evaluate,
+        load_runs,
+        paper_points,
+        pareto_plot,
+        search,
+    )
+
+    budget = Budget(
+        l3=_bytes(args.budget_l3, "--budget-l3"),
+        l2=_bytes(args.budget_l2, "--budget-l2"),
+        l1=_bytes(args.budget_l1, "--budget-l1"),
+    )
+    if budget.l3 is None and budget.l2 is None and budget.l1 is None:
+        raise InputError("--search needs at least one of --budget-l3/--budget-l2/--budget-l1")
+    platform = _platform(args)
+    fits = search(budget, platform)
+    print(f"{len(fits)} configurations fit; the {min(args.top, len(fits))} smallest:")
+    print(f"{'B':>6} {'log2T':>5} {'res':>4} {'grid':>4} {'hid':>4} {'L':>3} "
+          f"{'Mem MB':>7} {'L2 kB':>7} {'GOp':>6} {'train min':>9}")  # fmt: skip
+    for r in fits[: args.top]:
+        print(
+            f"{r['batch_samples']:>6} {r['log2_hashmap']:>5} {r['resolution']:>4} "
+            f"{r['grid_res']:>4} {r['hidden']:>4} {r['levels']:>3} {r['mem_mb']:>7.2f} "
+            f"{r['l2_kb']:>7.0f} {r['gop']:>6.3f} {r['train_min']:>9.1f}"
+        )
+    if args.runs:
+        try:
+            points = load_runs(args.runs)
+        except ValueError as err:
+            raise InputError(str(err)) from err
+        title = "measured runs"
+    else:
+        points = paper_points()
+        title = "the paper's Table II PSNRs (published, not measured here)"
+    evaluate(points, budget, platform)
+    chosen = choose(points, args.tolerance_db)
+    out = Path(args.plot) if args.plot else workspace.resolve(args.workdir, None, "pareto.png")
+    budget_mb = None if budget.l3 is None else budget.l3 / 1e6
+    pareto_plot(points, chosen, out, budget_mb, f"memory vs PSNR: {title}")
+    if chosen is None:
+        print(f"no {'run' if args.runs else 'Table II row'} fits the budget")
+    else:
+        print(f"chosen: {chosen.label} ({chosen.mem_mb:.1f} MB, {chosen.psnr:.2f} dB; {title})")
+    print(f"wrote {out}")
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    """Print the report (or the Table II comparison, or the search) and write its outputs."""
+    if args.table2:
+        return _table2(args)
+    if args.search:
+        return _search(args)
+    return _report(args)

@@ -1,0 +1,517 @@
+"""GAP9 cost model: memory, operations, latency, L3 traffic, energy and radio time of a training
+configuration, as the paper's embedded implementation would spend them.
+
+The implementation modelled (the paper's Deployment section):
+
+- every trainable value lives in L3 as fp32 master + fp32 gradient + two fp32 Adam moments;
+  arithmetic is fp16 SIMD; a step of ``B`` samples is processed as ``ceil(B / tile)`` tiles of
+  ``tile_samples`` with gradients accumulated, then one Adam update;
+- a tile's activations and their gradient buffers stay in L2; hash levels come L3 -> L2 one at a
+  time (double-buffered) for the gather (forward) and the gradient read-modify-write (backward);
+  MLP kernels stream sub-tiles L2 -> L1 sized to fill L1;
+- DMA overlaps computation: a kernel takes max(compute, transfer);
+- the occupancy grid (fp32 EMA + a byte flag per cell) is updated on its own schedule.
+
+Public API: :func:`cost_report`, :func:`format_report`, :func:`federated_payload`,
+:func:`link_time_s`, :class:`Platform`, :func:`load_platform`. All sizes in bytes, times in
+seconds, energies in joules, ops as counted in :mod:`dronecap.nerf.gap9_arch`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from dronecap.nerf import gap9_arch as arch
+from dronecap.nerf.config import TrainConfig
+from dronecap.nerf.gap9_platform import Platform, format_bytes, load_platform
+
+__all__ = [
+    "Platform",
+    "cost_report",
+    "federated_payload",
+    "format_report",
+    "link_time_s",
+    "load_platform",
+]
+
+
+def _platform(platform: Platform | None) -> Platform:
+    return platform if platform is not None else load_platform()
+
+
+# ---------------------------------------------------------------------------------------------
+# memory
+# ---------------------------------------------------------------------------------------------
+
+
+def param_state_bytes(c: arch.Counts, p: Platform) -> dict[str, int]:
+    """Parameters, gradients and Adam moments of every trainable value (hash + MLPs), bytes."""
+    n = p.numerics
+    return {
+        "parameters": c.params * n.param_bytes,
+        "gradients": c.params * n.grad_bytes,
+        "optimizer_state": c.params * 2 * n.moment_bytes,
+    }
+
+
+def grid_bytes(c: arch.Counts, p: Platform) -> int:
+    """Occupancy grid: fp32 EMA density + one flag byte per cell (128^3 -> 10.49 MB)."""
+    return c.grid_cells * (p.numerics.grid_density_bytes + p.numerics.grid_flag_bytes)
+
+
+def image_bytes(cfg: TrainConfig, p: Platform, n_images: int) -> int:
+    """``n_images`` stored images of ``resolution^2`` pixels at 1 byte/pixel (100 x 160^2 =
+    2.56 MB, the paper's accounting)."""
+    return n_images * cfg.resolution**2 * p.numerics.image_bytes_per_pixel
+
+
+def total_memory(cfg: TrainConfig, p: Platform) -> dict[str, int]:
+    """Whole footprint of one training step with no tiling (Table II's Mem): parameter state,
+    activations of all ``B`` samples, occupancy grid, and the images of one step."""
+    c = arch.counts(cfg, p.hash_rows)
+    out = dict(param_state_bytes(c, p))
+    out["activations"] = cfg.batch_samples * arch.act_bytes_per_sample(cfg, p.numerics)
+    out["occupancy_grid"] = grid_bytes(c, p)
+    out["images"] = image_bytes(cfg, p, cfg.images_per_step)
+    out["total"] = sum(out.values())
+    return out
+
+
+def rays_per_tile(cfg: TrainConfig, spp: float) -> float:
+    """Rays whose samples fill one tile, at ``spp`` samples per ray on average."""
+    return cfg.tile_samples / spp
+
+
+def l2_phases(cfg: TrainConfig, p: Platform, spp: float, tile: int | None = None) -> dict[str, int]:
+    """L2 bytes in each phase of a tile: the tile's blobs (always) + what the phase adds.
+
+    resident: ``tile`` x (forward blobs + gradient buffers + position) and the rays of the tile
+    (origin, direction, accumulated colour and transmittance, target pixel);
+    hash_level: + ``level_buffers`` fp32 slices of one level (params forward, gradients backward);
+    density_mlp / color_mlp: + that MLP's fp32 weights and gradients.
+    """
+    n = p.numerics
+    tile = cfg.tile_samples if tile is None else tile
+    c = arch.counts(cfg, p.hash_rows)
+    rays = math.ceil(tile / spp)
+    ray_bytes = 6 * n.coord_bytes + (cfg.channels + 1) * 4 + cfg.channels * n.image_bytes_per_pixel
+    resident = tile * arch.tile_bytes_per_sample(cfg, n) + rays * ray_bytes
+    level_rows = max(arch.hash_rows_per_level(cfg, p.hash_rows))
+    level = p.level_buffers * level_rows * cfg.features * max(n.param_bytes, n.grad_bytes)
+    mlp_state = n.param_bytes + n.grad_bytes
+    return {
+        "resident": resident,
+        "hash_level": resident + level,
+        "density_mlp": resident + c.density_mlp_params * mlp_state,
+        "color_mlp": resident + c.color_mlp_params * mlp_state,
+    }
+
+
+def l1_peak(cfg: TrainConfig, p: Platform) -> dict[str, int | str]:
+    """L1 working set of the MLP-layer backward kernels, all run with one sub-tile size.
+
+    Per layer (n_in, n_out): fp16 weights + fp32 weight-gradient accumulator, and per sample
+    the input blob, its gradient, the output blob (ReLU mask) and its gradient in fp16, twice
+    (double-buffered DMA). The sub-tile is the largest multiple of the worker cores with which
+    every layer fits ``l1_bytes - l1_reserved_bytes`` (at least one sample per core); the peak is
+    the layer that needs most with it (tiny-dronerf: colour hidden 64x64, 80 samples, 106.5 kB).
+    """
+    n = p.numerics
+    budget = p.l1_bytes - p.l1_reserved_bytes
+    layers = [
+        (
+            f"{which}[{i}] {a}x{b}",
+            a * b * (n.act_bytes + n.grad_bytes),
+            2 * 2 * (a + b) * n.act_bytes,
+        )
+        for which, chain in arch.mlp_layers(cfg).items()
+        for i, (a, b) in enumerate(chain)
+    ]
+    fit = min(max(0, budget - fixed) // per_sample for _, fixed, per_sample in layers)
+    sub = max(p.worker_cores, fit - fit % p.worker_cores)
+    name, fixed, per_sample = max(layers, key=lambda x: x[1] + sub * x[2])
+    return {"bytes": fixed + sub * per_sample, "layer": name, "subtile": sub}
+
+
+def largest_tile_in_l2(cfg: TrainConfig, p: Platform, spp: float) -> int:
+    """Largest power-of-two tile whose L2 peak fits ``l2_bytes`` (0 if not even 1 sample)."""
+    tile = 1
+    if max(l2_phases(cfg, p, spp, 1).values()) > p.l2_bytes:
+        return 0
+    while max(l2_phases(cfg, p, spp, tile * 2).values()) <= p.l2_bytes and tile < 1 << 24:
+        tile *= 2
+    return tile
+
+
+def l3_resident(cfg: TrainConfig, p: Platform, n_images: int) -> dict[str, int]:
+    """What the tiled GAP9 implementation keeps in L3: parameter state, grid, stored images."""
+    c = arch.counts(cfg, p.hash_rows)
+    out = {"parameter_state": sum(param_state_bytes(c, p).values())}
+    out["occupancy_grid"] = grid_bytes(c, p)
+    out["images"] = image_bytes(cfg, p, n_images)
+    out["total"] = sum(out.values())
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# operations
+# ---------------------------------------------------------------------------------------------
+
+
+def step_ops(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
+    """Ops of one optimizer step (Table II's Compute): forward and backward of ``B`` samples,
+    loss per ray, Adam, and the occupancy update amortised over the run's schedule."""
+    per = arch.ops_per_sample(cfg)
+    c = arch.counts(cfg, p.hash_rows)
+    sched = arch.grid_schedule(cfg)
+    occ_total = sched.total_queries * arch.density_query_ops(cfg)
+    occ_total += sched.updates * c.grid_cells * arch.GRID_CELL_OPS
+    out = {
+        "forward": cfg.batch_samples * sum(per["forward"].values()),
+        "backward": cfg.batch_samples * sum(per["backward"].values()),
+        "loss": cfg.batch_samples / spp * arch.loss_ops_per_ray(cfg),
+        "optimizer": arch.optimizer_ops(c),
+        "occupancy_amortised": occ_total / max(cfg.steps, 1),
+    }
+    out["total"] = sum(out.values())
+    return out
+
+
+def frame_samples(cfg: TrainConfig, spp: float) -> float:
+    """Samples of one rendered ``resolution^2`` frame at ``spp`` samples per pixel."""
+    return cfg.resolution**2 * spp
+
+
+# ---------------------------------------------------------------------------------------------
+# L3 traffic and latency
+# ---------------------------------------------------------------------------------------------
+
+
+def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
+    """L3 <-> L2 bytes per tile, per Adam step, per occupancy update.
+
+    tile: hash params read (fp32) for the forward gather + hash gradients read and written
+    (fp32 accumulation) in the backward, the same for the MLP weights, the occupancy flags the
+    rays test (``march_steps`` per ray) and the target pixels. adam: read params, gradients,
+    both moments; write params and moments; zero the gradients. occupancy update: the hash
+    params once per tile of queries, the grid's EMA read and written, its flags written.
+    """
+    n = p.numerics
+    c = arch.counts(cfg, p.hash_rows)
+    rays = rays_per_tile(cfg, spp)
+    per_param_tile = n.param_bytes + 2 * n.grad_bytes
+    tile = {
+        "hash_params_and_grads": c.hash_params * per_param_tile,
+        "mlp_params_and_grads": c.mlp_params * per_param_tile,
+        "occupancy_flags": rays * cfg.march_steps * n.grid_flag_bytes,
+        "pixels": rays * cfg.channels * n.image_bytes_per_pixel,
+    }
+    tile["total"] = sum(tile.values())
+    adam = c.params * (
+        n.param_bytes + 2 * n.grad_bytes + 2 * n.moment_bytes + n.param_bytes + 2 * n.moment_bytes
+    )
+    sched = arch.grid_schedule(cfg)
+    query_tiles = math.ceil(sched.steady_queries / cfg.tile_samples)
+    occupancy = query_tiles * c.hash_params * n.param_bytes + c.grid_cells * (
+        2 * n.grid_density_bytes + n.grid_flag_bytes
+    )
+    tiles = math.ceil(cfg.batch_samples / cfg.tile_samples)
+    return {
+        "tile": tile,
+        "tiles_per_step": tiles,
+        "adam_step": adam,
+        "step": tiles * tile["total"] + adam,
+        "occupancy_update": occupancy,
+    }
+
+
+def kernel_latency(cfg: TrainConfig, p: Platform) -> dict[str, dict[str, float]]:
+    """Compute seconds per tile of each kernel, forward and backward (no DMA).
+
+    hash: corners x cycles per corner; MLPs: ops / effective ops per cycle of the pass;
+    elementwise: ops / scalar FP ops per cycle.
+    """
+    cal, hz, tile = p.calibration, p.clock_hz, cfg.tile_samples
+    per = arch.ops_per_sample(cfg)
+    out: dict[str, dict[str, float]] = {}
+    for pas, rate in (
+        ("forward", cal.mlp_fwd_ops_per_cycle),
+        ("backward", cal.mlp_bwd_ops_per_cycle),
+    ):
+        ops = per[pas]
+        out[pas] = {
+            "hash": tile * arch.hash_corners_per_sample(cfg) * cal.hash_cycles_per_corner / hz,
+            "density_mlp": tile * ops["density_mlp"] / rate / hz,
+            "color_mlp": tile * ops["color_mlp"] / rate / hz,
+            "elementwise": tile * ops["elementwise"] / cal.elementwise_ops_per_cycle / hz,
+        }
+    return out
+
+
+def occupancy_update_s(cfg: TrainConfig, p: Platform, queries: int) -> float:
+    """Seconds of one occupancy update querying ``queries`` cells (compute vs DMA, the larger)."""
+    cal, hz = p.calibration, p.clock_hz
+    per_query = (
+        arch.hash_corners_per_sample(cfg) * cal.hash_cycles_per_corner
+        + 2 * arch.mlp_macs(cfg, "density") / cal.mlp_fwd_ops_per_cycle
+        + (
+            arch.density_query_ops(cfg)
+            - arch.hash_ops_per_sample(cfg)
+            - 2 * arch.mlp_macs(cfg, "density")
+        )
+        / cal.elementwise_ops_per_cycle
+    )
+    cells = cfg.grid_res**3
+    compute = (
+        queries * per_query + cells * arch.GRID_CELL_OPS / cal.elementwise_ops_per_cycle
+    ) / hz
+    n = p.numerics
+    c = arch.counts(cfg, p.hash_rows)
+    dma = (
+        math.ceil(queries / cfg.tile_samples) * c.hash_params * n.param_bytes
+        + cells * (2 * n.grid_density_bytes + n.grid_flag_bytes)
+    ) / p.l3_l2_bytes_per_s
+    return max(compute, dma)
+
+
+def latency(cfg: TrainConfig, p: Platform, spp: float) -> dict:
+    """Per-kernel and per-step seconds, training time for ``cfg.steps`` and render time."""
+    kern = kernel_latency(cfg, p)
+    traffic = l3_traffic(cfg, p, spp)
+    fwd, bwd = sum(kern["forward"].values()), sum(kern["backward"].values())
+    dma_tile = traffic["tile"]["total"] / p.l3_l2_bytes_per_s
+    tile_s = max(fwd + bwd, dma_tile)
+    c = arch.counts(cfg, p.hash_rows)
+    adam_compute = arch.optimizer_ops(c) / p.calibration.elementwise_ops_per_cycle / p.clock_hz
+    adam_dma = traffic["adam_step"] / p.l3_l2_bytes_per_s
+    adam = max(adam_compute, adam_dma)
+    sched = arch.grid_schedule(cfg)
+    occ_steady = occupancy_update_s(cfg, p, sched.steady_queries)
+    occ_warm = occupancy_update_s(cfg, p, sched.warmup_queries)
+    occ_run = sched.warmup_updates * occ_warm + sched.steady_updates * occ_steady
+    tiles = traffic["tiles_per_step"]
+    step = tiles * tile_s + adam + occ_run / max(cfg.steps, 1)
+    render_tiles = math.ceil(frame_samples(cfg, spp) / cfg.tile_samples)
+    return {
+        "kernels_per_tile": kern,
+        "forward_tile": fwd,
+        "backward_tile": bwd,
+        "l3_dma_tile": dma_tile,
+        "dma_hidden": dma_tile <= fwd + bwd,
+        "tile": tile_s,
+        "adam_step": adam,
+        "adam_bound": "L3 DMA" if adam_dma >= adam_compute else "compute",
+        "occupancy_update": occ_steady,
+        "occupancy_warmup_update": occ_warm,
+        "occupancy_run": occ_run,
+        "step": step,
+        "per_tile_amortised": step / tiles,
+        "train": step * cfg.steps,
+        "render_tiles": render_tiles,
+        "render_frame": render_tiles * fwd,
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# federated link
+# ---------------------------------------------------------------------------------------------
+
+
+def federated_payload(cfg: TrainConfig, exchange_grid: bool, bytes_per_value: int = 2) -> int:
+    """Bytes one drone sends (or receives) per round for the model: hash table + MLP weights,
+    plus one value per occupancy cell when the grid is exchanged. Counts T rows per level, as
+    the paper. tiny-dronerf, fp16: 524288 + 18816 = 543104 B; + 2 x 128^3 = 4737408 B."""
+    c = arch.counts(cfg, "paper")
+    values = c.params + (c.grid_cells if exchange_grid else 0)
+    return values * bytes_per_value
+
+
+def link_time_s(n_bytes: int, platform: Platform | None = None) -> float:
+    """Seconds to move ``n_bytes`` over the radio at its rated bit rate (8 bits per byte).
+
+    A FedAvg round over one shared channel moves every upload and download in turn: 4 drones x
+    (up + down) x 0.52 MB -> 2.24 s at 15 Mbit/s.
+    """
+    return n_bytes * 8 / _platform(platform).link_bits_per_s
+
+
+# ---------------------------------------------------------------------------------------------
+# the report
+# ---------------------------------------------------------------------------------------------
+
+_CONFIG_FIELDS = (
+    "images_per_step", "resolution", "batch_samples", "tile_samples", "levels", "features",
+    "log2_hashmap", "n_min", "n_max", "hidden", "density_layers", "color_layers", "geo_features",
+    "sh_degree", "channels", "grid_res", "grid_warmup", "grid_every", "march_steps", "steps",
+    "train_images", "precision",
+)  # fmt: skip
+
+
+def cost_report(
+    cfg: TrainConfig,
+    platform: Platform | None = None,
+    *,
+    samples_per_pixel: float = 13.0,
+    n_images: int | None = None,
+    clients: int = 4,
+) -> dict:
+    """The whole cost of ``cfg`` on ``platform`` (default GAP9) as a JSON-able nested dict.
+
+    Args:
+        cfg: the trainer configuration.
+        platform: target; default :func:`load_platform` (nerf/gap9.yaml).
+        samples_per_pixel: average samples per ray after empty-space skipping (paper: 13); sets
+            rays per tile and the render cost.
+        n_images: training images the drone stores in L3 (default ``cfg.train_images``).
+        clients: drones of a federated round (for the per-round link time).
+    Returns:
+        {"config", "platform", "counts", "memory", "ops", "latency", "l3_traffic", "energy",
+        "link", "verdicts"}; bytes, ops, seconds, joules.
+    """
+    p = _platform(platform)
+    spp = float(samples_per_pixel)
+    if spp <= 0 or cfg.tile_samples <= 0 or cfg.batch_samples <= 0:
+        raise ValueError("samples_per_pixel, tile_samples and batch_samples must be positive")
+    n_img = cfg.train_images if n_images is None else int(n_images)
+    c = arch.counts(cfg, p.hash_rows)
+    phases = l2_phases(cfg, p, spp)
+    l2_phase = max(phases, key=phases.get)
+    l1 = l1_peak(cfg, p)
+    l3 = l3_resident(cfg, p, n_img)
+    total = total_memory(cfg, p)
+    ops = step_ops(cfg, p, spp)
+    per = arch.ops_per_sample(cfg)
+    lat = latency(cfg, p, spp)
+    traffic = l3_traffic(cfg, p, spp)
+    no_grid = federated_payload(cfg, False)
+    with_grid = federated_payload(cfg, True)
+    transfers = 2 * clients
+    verdicts = {
+        "l1": {"need": l1["bytes"] + p.l1_reserved_bytes, "have": p.l1_bytes},
+        "l2": {"need": phases[l2_phase], "have": p.l2_bytes},
+        "l3": {"need": l3["total"], "have": p.l3_bytes},
+        "untiled_total_in_l3": {"need": total["total"], "have": p.l3_bytes},
+    }
+    for v in verdicts.values():
+        v["fits"] = v["need"] <= v["have"]
+    return {
+        "config": {k: getattr(cfg, k) for k in _CONFIG_FIELDS},
+        "platform": p.name,
+        "assumptions": {"samples_per_pixel": spp, "n_images": n_img, "hash_rows": p.hash_rows},
+        "counts": {
+            **dataclasses.asdict(c),
+            "mlp_params": c.mlp_params,
+            "params": c.params,
+            "act_bytes_per_sample": arch.act_bytes_per_sample(cfg, p.numerics),
+            "tile_bytes_per_sample": arch.tile_bytes_per_sample(cfg, p.numerics),
+            "ops_per_sample": per,
+        },
+        "memory": {
+            "untiled": total,
+            "l1_peak": l1,
+            "l2_peak": {"bytes": phases[l2_phase], "phase": l2_phase, "phases": phases},
+            "l3": l3,
+            "largest_tile_in_l2": largest_tile_in_l2(cfg, p, spp),
+        },
+        "ops": {
+            "step": ops,
+            "frame": frame_samples(cfg, spp) * sum(per["forward"].values()),
+        },
+        "latency": lat,
+        "l3_traffic": traffic,
+        "energy": {
+            "power_w": p.power_w,
+            "step": lat["step"] * p.power_w,
+            "run": lat["train"] * p.power_w,
+            "frame": lat["render_frame"] * p.power_w,
+        },
+        "link": {
+            "payload_no_grid": no_grid,
+            "payload_grid": with_grid,
+            "clients": clients,
+            "round_bytes_no_grid": transfers * no_grid,
+            "round_bytes_grid": transfers * with_grid,
+            "round_s_no_grid": link_time_s(transfers * no_grid, p),
+            "round_s_grid": link_time_s(transfers * with_grid, p),
+        },
+        "verdicts": verdicts,
+    }
+
+
+def _s(t: float) -> str:
+    if t >= 3600:
+        return f"{t / 3600:.2f} h"
+    if t >= 60:
+        return f"{t / 60:.1f} min"
+    return f"{t:.3g} s" if t >= 1 else f"{t * 1e3:.3g} ms"
+
+
+def format_report(report: dict) -> str:
+    """A readable multi-section table of a :func:`cost_report` dict."""
+    r, cfg, mem, lat = report, report["config"], report["memory"], report["latency"]
+    rows: list[tuple[str, str]] = []
+
+    def section(title: str) -> None:
+        rows.append((f"-- {title}", ""))
+
+    section(f"configuration on {r['platform']}")
+    rows.append((
+        "B / tile / log2 T / L x F",
+        f"{cfg['batch_samples']} / {cfg['tile_samples']} / {cfg['log2_hashmap']} / "
+        f"{cfg['levels']} x {cfg['features']}",
+    ))  # fmt: skip
+    rows.append(("images/step, resolution", f"{cfg['images_per_step']}, {cfg['resolution']} px"))
+    rows.append(
+        ("params (hash + MLP)", f"{r['counts']['hash_params']} + {r['counts']['mlp_params']}")
+    )
+    section("memory (untiled, Table II accounting)")
+    for k, v in mem["untiled"].items():
+        rows.append((k, format_bytes(v)))
+    section("placement (tiled GAP9)")
+    l1 = mem["l1_peak"]
+    rows.append(
+        ("L1 peak", f"{format_bytes(l1['bytes'])} ({l1['layer']}, sub-tile {l1['subtile']})")
+    )
+    rows.append(("L2 peak", f"{format_bytes(mem['l2_peak']['bytes'])} ({mem['l2_peak']['phase']})"))
+    rows.append(("L3 resident", format_bytes(mem["l3"]["total"])))
+    rows.append(("largest tile in L2", str(mem["largest_tile_in_l2"])))
+    section("operations")
+    for k, v in r["ops"]["step"].items():
+        rows.append((f"{k} / step", f"{v / 1e9:.3f} GOp"))
+    rows.append(("per rendered frame", f"{r['ops']['frame'] / 1e9:.2f} GOp"))
+    section("latency")
+    for pas in ("forward", "backward"):
+        parts = ", ".join(f"{k} {v * 1e3:.2f}" for k, v in lat["kernels_per_tile"][pas].items())
+        rows.append((f"{pas} / tile", f"{_s(lat[pas + '_tile'])} ({parts} ms)"))
+    rows.append(
+        (
+            "L3 DMA / tile",
+            f"{_s(lat['l3_dma_tile'])} ({'hidden' if lat['dma_hidden'] else 'exposed'})",
+        )
+    )
+    rows.append(("Adam / step", f"{_s(lat['adam_step'])} ({lat['adam_bound']} bound)"))
+    rows.append(("occupancy update", _s(lat["occupancy_update"])))
+    rows.append(
+        ("step / amortised per tile", f"{_s(lat['step'])} / {_s(lat['per_tile_amortised'])}")
+    )
+    rows.append((f"training ({cfg['steps']} steps)", _s(lat["train"])))
+    rows.append(("render one frame", f"{_s(lat['render_frame'])} ({lat['render_tiles']} tiles)"))
+    section("L3 traffic")
+    rows.append(("per tile", format_bytes(r["l3_traffic"]["tile"]["total"])))
+    rows.append(("per step (incl. Adam)", format_bytes(r["l3_traffic"]["step"])))
+    section("energy at %.0f mW" % (r["energy"]["power_w"] * 1e3))
+    for k in ("step", "run", "frame"):
+        rows.append((k, f"{r['energy'][k]:.3g} J"))
+    section(f"federated round ({r['link']['clients']} drones, up + down)")
+    for g in ("no_grid", "grid"):
+        rows.append((
+            f"payload {g.replace('_', ' ')}",
+            f"{format_bytes(r['link']['payload_' + g])} -> {_s(r['link']['round_s_' + g])}",
+        ))  # fmt: skip
+    section("verdicts")
+    for k, v in r["verdicts"].items():
+        ok = "fits" if v["fits"] else "DOES NOT FIT"
+        rows.append((k, f"{ok}: {format_bytes(v['need'])} of {format_bytes(v['have'])}"))
+    width = max(len(a) for a, _ in rows)
+    return "\n".join(a if a.startswith("--") else f"  {a:<{width}}  {b}" for a, b in rows)
