@@ -214,36 +214,40 @@ class HashGrid(torch.nn.Module):
         )
 
 
-def extension_build_dir() -> Path:
-    """Where the compiled C++ kernel is cached: ``$XDG_CACHE_HOME/dronecap/torch_extensions``."""
+def extension_build_dir(name: str) -> Path:
+    """Where a compiled C++ kernel is cached: ``$XDG_CACHE_HOME/dronecap/torch_extensions/name``."""
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return cache / "dronecap" / "torch_extensions" / "hashgrid"
+    return cache / "dronecap" / "torch_extensions" / name
 
 
-_EXTENSION = None
+_EXTENSIONS: dict[str, object] = {}
 
 
-def load_extension():
-    """Compile (once, ~30-60 s, cached on disk) and import the C++/OpenMP kernel module.
+def build_extension(name: str, source: str, extra_cflags: Sequence[str] = ()):
+    """Compile (once, ~30-60 s, cached on disk and rebuilt when the source changes) and import
+    the C++/OpenMP kernel module ``csrc/<source>`` as ``dronecap_<name>``.
 
     Raises whatever the compiler or loader raises when the kernel cannot be built.
     """
-    global _EXTENSION
-    if _EXTENSION is None:
+    if name not in _EXTENSIONS:
         from torch.utils import cpp_extension  # noqa: PLC0415
 
-        build_dir = extension_build_dir()
+        build_dir = extension_build_dir(name)
         build_dir.mkdir(parents=True, exist_ok=True)
-        flags = ["-O3", "-march=native", "-fopenmp"]
-        _EXTENSION = cpp_extension.load(
-            name="dronecap_hashgrid",
-            sources=[str(Path(__file__).parent / "csrc" / "hashgrid.cpp")],
-            extra_cflags=flags,
+        _EXTENSIONS[name] = cpp_extension.load(
+            name=f"dronecap_{name}",
+            sources=[str(Path(__file__).parent / "csrc" / source)],
+            extra_cflags=["-O3", "-march=native", "-fopenmp", *extra_cflags],
             extra_ldflags=["-fopenmp"],
             build_directory=str(build_dir),
             verbose=False,
         )
-    return _EXTENSION
+    return _EXTENSIONS[name]
+
+
+def load_extension():
+    """The hash encoding kernels (``csrc/hashgrid.cpp``), built on first use."""
+    return build_extension("hashgrid", "hashgrid.cpp")
 
 
 BACKWARD_MODES = {"level": 0, "atomic": 1, "partial": 2}

@@ -1,0 +1,125 @@
+// Ray marching through an occupancy grid into packed samples, for the CPU.
+//
+// Same arithmetic as the PyTorch reference nerf/marching.py (float32, one rounding per
+// operation: built with -ffp-contract=off so no multiply-add is fused), so both keep exactly
+// the same samples. Ray r has candidates t_k = t_near + (k + offset_r) * step for
+// k < min(ceil((t_far - t_near) / step), max_samples); a candidate is kept when t_k < t_far
+// and the cell of o + d t_k is occupied (cells: x-major index (i res + j) res + k of the
+// point's position in the AABB, truncated and clamped to the grid; NaN -> cell 0).
+// Each thread owns a contiguous run of rays and collects its samples in a private buffer; the
+// buffers are then copied out in ray order.
+#include <torch/extension.h>
+
+#include <ATen/Parallel.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+namespace {
+
+inline int64_t axis_cell(float p, float lo, float extent, float res_f, int64_t res) {
+  const float v = ((p - lo) / extent) * res_f;
+  if (!(v >= 0.0f)) return 0;  // negative or NaN
+  if (v >= float(res)) return res - 1;
+  return std::min<int64_t>(int64_t(v), res - 1);
+}
+
+}  // namespace
+
+// Returns (ray_indices int64 [S], t_starts float32 [S], t_ends float32 [S], counts int64 [R]).
+std::vector<torch::Tensor> march(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t_near,
+                                 torch::Tensor t_far, double step, torch::Tensor occupied,
+                                 torch::Tensor aabb, int64_t max_samples, torch::Tensor offsets) {
+  const int64_t r = origins.size(0);
+  for (const auto& t : {origins, dirs, aabb}) {
+    TORCH_CHECK(t.scalar_type() == torch::kFloat32 && t.is_contiguous() && t.dim() == 2 &&
+                    t.size(1) == 3, "origins, dirs, aabb must be contiguous float32 [*, 3]");
+  }
+  for (const auto& t : {t_near, t_far, offsets}) {
+    TORCH_CHECK(t.scalar_type() == torch::kFloat32 && t.is_contiguous() && t.numel() == r,
+                "t_near, t_far, offsets must be contiguous float32 [R]");
+  }
+  TORCH_CHECK(dirs.size(0) == r && aabb.size(0) == 2, "dirs must be [R, 3] and aabb [2, 3]");
+  TORCH_CHECK(step > 0.0, "marching step must be positive");
+  const bool use_grid = occupied.numel() > 0;
+  int64_t res = 0;
+  if (use_grid) {
+    TORCH_CHECK(occupied.scalar_type() == torch::kBool && occupied.is_contiguous(),
+                "occupied must be a contiguous bool tensor");
+    res = int64_t(std::llround(std::cbrt(double(occupied.numel()))));
+    TORCH_CHECK(res * res * res == occupied.numel(), "occupied must have res^3 cells");
+  }
+  const float* o = origins.data_ptr<float>();
+  const float* d = dirs.data_ptr<float>();
+  const float* tn = t_near.data_ptr<float>();
+  const float* tf = t_far.data_ptr<float>();
+  const float* off = offsets.data_ptr<float>();
+  const float* box = aabb.data_ptr<float>();
+  const bool* occ = use_grid ? occupied.data_ptr<bool>() : nullptr;
+  const float step_f = float(step), half = float(0.5 * step), res_f = float(res);
+  const float lo[3] = {box[0], box[1], box[2]};
+  const float extent[3] = {box[3] - box[0], box[4] - box[1], box[5] - box[2]};
+
+  auto counts = torch::zeros({r}, torch::dtype(torch::kInt64));
+  int64_t* cnt = counts.data_ptr<int64_t>();
+  const int nt = at::get_num_threads();
+  std::vector<std::vector<float>> kept(nt);  // per run of rays: t of kept candidates, in order
+  std::vector<int64_t> first_ray(nt + 1);
+  for (int b = 0; b <= nt; ++b) first_ray[b] = r * b / nt;
+#pragma omp parallel for schedule(static, 1) num_threads(nt)
+  for (int b = 0; b < nt; ++b) {
+    std::vector<float>& out = kept[b];
+    out.reserve(size_t(first_ray[b + 1] - first_ray[b]) * 16);
+    for (int64_t i = first_ray[b]; i < first_ray[b + 1]; ++i) {
+      const float len = std::max(tf[i] - tn[i], 0.0f);
+      const float n_f = std::ceil(len / step_f);  // NaN-safe: only n_f >= 1 gives samples
+      const int64_t n = n_f >= 1.0f ? int64_t(std::min(n_f, float(max_samples))) : 0;
+      int64_t c = 0;
+      for (int64_t k = 0; k < n; ++k) {
+        const float t = tn[i] + (float(k) + off[i]) * step_f;
+        if (!(t < tf[i])) continue;
+        if (use_grid) {
+          int64_t cell = 0;
+          for (int a = 0; a < 3; ++a) {
+            const float p = o[3 * i + a] + d[3 * i + a] * t;
+            cell = cell * res + axis_cell(p, lo[a], extent[a], res_f, res);
+          }
+          if (!occ[cell]) continue;
+        }
+        out.push_back(t);
+        ++c;
+      }
+      cnt[i] = c;
+    }
+  }
+  std::vector<int64_t> start(nt + 1, 0);
+  for (int b = 0; b < nt; ++b) start[b + 1] = start[b] + int64_t(kept[b].size());
+  const int64_t total = start[nt];
+  auto ray_indices = torch::empty({total}, torch::dtype(torch::kInt64));
+  auto t_starts = torch::empty({total}, torch::dtype(torch::kFloat32));
+  auto t_ends = torch::empty({total}, torch::dtype(torch::kFloat32));
+  int64_t* ri = ray_indices.data_ptr<int64_t>();
+  float* ts = t_starts.data_ptr<float>();
+  float* te = t_ends.data_ptr<float>();
+#pragma omp parallel for schedule(static, 1) num_threads(nt)
+  for (int b = 0; b < nt; ++b) {
+    if (kept[b].empty()) continue;
+    int64_t s = start[b];
+    for (int64_t i = first_ray[b]; i < first_ray[b + 1]; ++i) {
+      for (int64_t c = 0; c < cnt[i]; ++c, ++s) {
+        const float t = kept[b][size_t(s - start[b])];
+        ri[s] = i;
+        ts[s] = std::max(t - half, tn[i]);
+        te[s] = std::min(t + half, tf[i]);
+      }
+    }
+  }
+  return {ray_indices, t_starts, t_ends, counts};
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("march", &march, "occupancy-grid ray marching into packed samples");
+}
