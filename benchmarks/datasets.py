@@ -1,7 +1,8 @@
 """Datasets benchmark: import, carving grid (time vs tightness), HDF5 reads, sharding, export.
 
 Run: ``nice .venv/bin/python benchmarks/datasets.py`` (needs ../shared/data/nerf_synthetic_160).
-Prints a table and writes it to ``benchmarks/results/datasets.md``. Times are medians of
+Prints a table and writes it to ``benchmarks/results/datasets.md``, and a top view of lego's
+sector shards to ``benchmarks/results/datasets_sectors.png``. Times are medians of
 ``REPEAT`` runs on this machine (2 shared cores: noisy).
 """
 
@@ -22,7 +23,7 @@ from dronecap.datasets.blender import import_blender
 from dronecap.datasets.bounds import carve_aabb, lookat_cube
 from dronecap.datasets.export import export_transforms
 from dronecap.datasets.format import open_dataset
-from dronecap.datasets.shard import shard_dataset
+from dronecap.datasets.shard import azimuths, shard_dataset
 
 REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
@@ -65,6 +66,33 @@ def hits_fraction(ds, aabb: np.ndarray) -> float:
         hit += int(((tmax >= tmin) & (tmax > 0)).sum())
         total += len(u)
     return hit / total
+
+
+def plot_sectors(ds, summary: dict) -> None:
+    """Top view of the train cameras around the scene centre, coloured by sector shard."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    up, centre = np.array(summary["up"]), np.array(summary["scene_centre"])
+    fig, ax = plt.subplots(figsize=(5, 5))
+    for s in summary["shards"]:
+        idx = np.array(s["parent_index"])
+        az = azimuths(ds.poses[idx, :3, 3], centre, up)
+        r = np.linalg.norm(np.cross(ds.poses[idx, :3, 3] - centre, up), axis=1)
+        ax.scatter(r * np.cos(az), r * np.sin(az), s=18, label=f"client {s['client']}")
+    test = ds.indices("test")
+    az = azimuths(ds.poses[test, :3, 3], centre, up)
+    r = np.linalg.norm(np.cross(ds.poses[test, :3, 3] - centre, up), axis=1)
+    ax.scatter(r * np.cos(az), r * np.sin(az), s=6, c="lightgray", label="test (all clients)")
+    ax.scatter([0], [0], marker="+", c="k")
+    ax.set_aspect("equal")
+    ax.set_title("lego, 4 sector shards: camera centres seen from above")
+    ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(OUT.with_name("datasets_sectors.png"), dpi=110)
+    plt.close(fig)
 
 
 def main() -> int:
@@ -122,6 +150,7 @@ def main() -> int:
             spans = [s.get("span_deg") for s in summary["shards"]]
             extra = f"sector spans {spans} deg" if scheme == "sector" else "4 x 25 train + 200 test"
             rows.append(f"| shard lego 4 clients {scheme} | {t:.2f} s | {extra} |")
+        plot_sectors(ds, json.loads((tmp / "sector" / "summary.json").read_text()))
         t = median_time(lambda: export_transforms(h5, tmp / "export"))
         rows.append(f"| export-transforms lego (400 PNGs) | {t:.2f} s | |")
 

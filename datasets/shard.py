@@ -5,10 +5,11 @@ Two schemes:
 - ``iid``: a seeded shuffle of the train images, cut into K parts whose sizes differ by at most 1;
 - ``sector``: each drone gets a contiguous angular sector of viewpoints — the azimuth of the
   camera centre around the scene centre (the AABB's centre, or the cameras' common look-at
-  point without one), measured about the scene's up axis (the mean of the cameras' up vectors,
-  -y in OpenCV axes). The circle is cut at the widest gap between neighbouring views, then into
-  K runs of equal image counts, so some sides of the scene stay unseen by each drone (the
-  paper's non-IID setup: lego, 4 drones x 25 images).
+  point without one), measured about the scene's up axis (:func:`scene_up`: perpendicular to
+  the cameras' horizontal x axes, on the side of their mean up vector). The circle is cut at
+  the widest gap between neighbouring views, then into K runs of equal image counts, so some
+  sides of the scene stay unseen by each drone (the paper's non-IID setup: lego, 4 drones x 25
+  images).
 
 Each shard is a dataset file ``client_K.h5`` (kind "shard") holding that drone's train images plus
 the common test set; ``shards/<scheme>`` marks each frame's client (-1 for test frames) and
@@ -34,21 +35,28 @@ SCHEMES = ("iid", "sector")
 
 
 def scene_up(poses: np.ndarray) -> np.ndarray:
-    """The scene's up axis: the normalised mean of the cameras' up vectors.
+    """The scene's up axis, from how the cameras are held.
+
+    Cameras that do not roll keep their x axis horizontal, so up is the direction most nearly
+    perpendicular to every camera's x axis: the eigenvectors of mean(x xᵀ) with eigenvalue
+    < 0.1 span the candidates (one direction for cameras all around a scene, a plane for cameras
+    that all face one way), and up is the mean camera up vector (-y in OpenCV axes) projected
+    onto them. Without such directions (cameras rolled every way) it is that mean itself.
 
     Args:
-        poses: float64 [N, 4, 4] camera-to-world, OpenCV axes (camera up = -y column).
+        poses: float64 [N, 4, 4] camera-to-world, OpenCV axes.
 
     Returns:
-        float64 [3] unit vector. When the cameras' up vectors cancel out (less than 0.1 in mean
-        length), the normal of the plane the camera centres spread in, turned towards that mean.
+        float64 [3] unit vector.
     """
-    mean = -poses[:, :3, 1].mean(0)
-    if np.linalg.norm(mean) >= 0.1:
-        return mean / np.linalg.norm(mean)
-    centres = poses[:, :3, 3] - poses[:, :3, 3].mean(0)
-    normal = np.linalg.svd(centres, full_matrices=False)[2][-1]
-    return normal if normal @ mean >= 0 else -normal
+    x = poses[:, :3, 0]
+    mean_up = -poses[:, :3, 1].mean(0)
+    w, v = np.linalg.eigh(x.T @ x / len(x))  # ascending eigenvalues
+    basis = v[:, w < 0.1] if (w < 0.1).any() else np.eye(3)
+    up = basis @ (basis.T @ mean_up)
+    if np.linalg.norm(up) < 1e-9:
+        up = v[:, 0]
+    return up / np.linalg.norm(up)
 
 
 def azimuths(centres: np.ndarray, origin: np.ndarray, up: np.ndarray) -> np.ndarray:
