@@ -24,7 +24,8 @@ import math
 
 from dronecap.nerf import gap9_arch as arch
 from dronecap.nerf.config import TrainConfig
-from dronecap.nerf.gap9_platform import Platform, format_bytes, load_platform
+from dronecap.nerf.gap9_format import format_report
+from dronecap.nerf.gap9_platform import Platform, load_platform
 
 __all__ = [
     "Platform",
@@ -188,6 +189,16 @@ def frame_samples(cfg: TrainConfig, spp: float) -> float:
 # ---------------------------------------------------------------------------------------------
 
 
+def occupancy_dma_bytes(cfg: TrainConfig, p: Platform, queries: int) -> int:
+    """L3 bytes of one occupancy update: the fp32 hash params once per tile of queries, every
+    cell's EMA read and written, every flag written."""
+    n = p.numerics
+    c = arch.counts(cfg, p.hash_rows)
+    query_tiles = math.ceil(queries / cfg.tile_samples)
+    grid = c.grid_cells * (2 * n.grid_density_bytes + n.grid_flag_bytes)
+    return query_tiles * c.hash_params * n.param_bytes + grid
+
+
 def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
     """L3 <-> L2 bytes per tile, per Adam step, per occupancy update.
 
@@ -211,11 +222,7 @@ def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
     adam = c.params * (
         n.param_bytes + 2 * n.grad_bytes + 2 * n.moment_bytes + n.param_bytes + 2 * n.moment_bytes
     )
-    sched = arch.grid_schedule(cfg)
-    query_tiles = math.ceil(sched.steady_queries / cfg.tile_samples)
-    occupancy = query_tiles * c.hash_params * n.param_bytes + c.grid_cells * (
-        2 * n.grid_density_bytes + n.grid_flag_bytes
-    )
+    occupancy = occupancy_dma_bytes(cfg, p, arch.grid_schedule(cfg).steady_queries)
     tiles = math.ceil(cfg.batch_samples / cfg.tile_samples)
     return {
         "tile": tile,
@@ -266,12 +273,7 @@ def occupancy_update_s(cfg: TrainConfig, p: Platform, queries: int) -> float:
     compute = (
         queries * per_query + cells * arch.GRID_CELL_OPS / cal.elementwise_ops_per_cycle
     ) / hz
-    n = p.numerics
-    c = arch.counts(cfg, p.hash_rows)
-    dma = (
-        math.ceil(queries / cfg.tile_samples) * c.hash_params * n.param_bytes
-        + cells * (2 * n.grid_density_bytes + n.grid_flag_bytes)
-    ) / p.l3_l2_bytes_per_s
+    dma = occupancy_dma_bytes(cfg, p, queries) / p.l3_l2_bytes_per_s
     return max(compute, dma)
 
 
@@ -437,81 +439,3 @@ def cost_report(
         },
         "verdicts": verdicts,
     }
-
-
-def _s(t: float) -> str:
-    if t >= 3600:
-        return f"{t / 3600:.2f} h"
-    if t >= 60:
-        return f"{t / 60:.1f} min"
-    return f"{t:.3g} s" if t >= 1 else f"{t * 1e3:.3g} ms"
-
-
-def format_report(report: dict) -> str:
-    """A readable multi-section table of a :func:`cost_report` dict."""
-    r, cfg, mem, lat = report, report["config"], report["memory"], report["latency"]
-    rows: list[tuple[str, str]] = []
-
-    def section(title: str) -> None:
-        rows.append((f"-- {title}", ""))
-
-    section(f"configuration on {r['platform']}")
-    rows.append((
-        "B / tile / log2 T / L x F",
-        f"{cfg['batch_samples']} / {cfg['tile_samples']} / {cfg['log2_hashmap']} / "
-        f"{cfg['levels']} x {cfg['features']}",
-    ))  # fmt: skip
-    rows.append(("images/step, resolution", f"{cfg['images_per_step']}, {cfg['resolution']} px"))
-    rows.append(
-        ("params (hash + MLP)", f"{r['counts']['hash_params']} + {r['counts']['mlp_params']}")
-    )
-    section("memory (untiled, Table II accounting)")
-    for k, v in mem["untiled"].items():
-        rows.append((k, format_bytes(v)))
-    section("placement (tiled GAP9)")
-    l1 = mem["l1_peak"]
-    rows.append(
-        ("L1 peak", f"{format_bytes(l1['bytes'])} ({l1['layer']}, sub-tile {l1['subtile']})")
-    )
-    rows.append(("L2 peak", f"{format_bytes(mem['l2_peak']['bytes'])} ({mem['l2_peak']['phase']})"))
-    rows.append(("L3 resident", format_bytes(mem["l3"]["total"])))
-    rows.append(("largest tile in L2", str(mem["largest_tile_in_l2"])))
-    section("operations")
-    for k, v in r["ops"]["step"].items():
-        rows.append((f"{k} / step", f"{v / 1e9:.3f} GOp"))
-    rows.append(("per rendered frame", f"{r['ops']['frame'] / 1e9:.2f} GOp"))
-    section("latency")
-    for pas in ("forward", "backward"):
-        parts = ", ".join(f"{k} {v * 1e3:.2f}" for k, v in lat["kernels_per_tile"][pas].items())
-        rows.append((f"{pas} / tile", f"{_s(lat[pas + '_tile'])} ({parts} ms)"))
-    rows.append(
-        (
-            "L3 DMA / tile",
-            f"{_s(lat['l3_dma_tile'])} ({'hidden' if lat['dma_hidden'] else 'exposed'})",
-        )
-    )
-    rows.append(("Adam / step", f"{_s(lat['adam_step'])} ({lat['adam_bound']} bound)"))
-    rows.append(("occupancy update", _s(lat["occupancy_update"])))
-    rows.append(
-        ("step / amortised per tile", f"{_s(lat['step'])} / {_s(lat['per_tile_amortised'])}")
-    )
-    rows.append((f"training ({cfg['steps']} steps)", _s(lat["train"])))
-    rows.append(("render one frame", f"{_s(lat['render_frame'])} ({lat['render_tiles']} tiles)"))
-    section("L3 traffic")
-    rows.append(("per tile", format_bytes(r["l3_traffic"]["tile"]["total"])))
-    rows.append(("per step (incl. Adam)", format_bytes(r["l3_traffic"]["step"])))
-    section("energy at %.0f mW" % (r["energy"]["power_w"] * 1e3))
-    for k in ("step", "run", "frame"):
-        rows.append((k, f"{r['energy'][k]:.3g} J"))
-    section(f"federated round ({r['link']['clients']} drones, up + down)")
-    for g in ("no_grid", "grid"):
-        rows.append((
-            f"payload {g.replace('_', ' ')}",
-            f"{format_bytes(r['link']['payload_' + g])} -> {_s(r['link']['round_s_' + g])}",
-        ))  # fmt: skip
-    section("verdicts")
-    for k, v in r["verdicts"].items():
-        ok = "fits" if v["fits"] else "DOES NOT FIT"
-        rows.append((k, f"{ok}: {format_bytes(v['need'])} of {format_bytes(v['have'])}"))
-    width = max(len(a) for a, _ in rows)
-    return "\n".join(a if a.startswith("--") else f"  {a:<{width}}  {b}" for a, b in rows)

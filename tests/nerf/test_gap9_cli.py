@@ -1,0 +1,140 @@
+"""`dronecap cost`: report, --table2, --search with and without measured runs, bad inputs."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+from dronecap.nerf.config import preset
+from dronecap.nerf.gap9_search import (
+    Budget,
+    Point,
+    choose,
+    config_from_dict,
+    pareto_front,
+    parse_set,
+    search,
+)
+
+from dronecap.cli import main
+
+
+def _metrics(run: Path, name: str, psnr: float) -> Path:
+    run.mkdir(parents=True)
+    f = run / "metrics.json"
+    f.write_text(json.dumps({"psnr": psnr, "config": dataclasses.asdict(preset(name))}))
+    return f
+
+
+def test_report_preset_writes_json(tmp_path, capsys):
+    assert main(["cost", "--workdir", str(tmp_path), "--preset", "b4k-t11"]) == 0
+    out = capsys.readouterr().out
+    assert "L2 peak" in out and "wrote" in out
+    rep = json.loads((tmp_path / "cost.json").read_text())
+    assert rep["config"]["batch_samples"] == 4096 and rep["config"]["log2_hashmap"] == 11
+
+
+def test_report_run_dir_and_set(tmp_path):
+    _metrics(tmp_path / "run", "tiny-dronerf", 26.9)
+    args = ["cost", str(tmp_path / "run"), "--set", "log2_hashmap=12", "--set", "grid_res=64"]
+    assert main(args) == 0
+    rep = json.loads((tmp_path / "run" / "cost.json").read_text())
+    assert rep["config"]["log2_hashmap"] == 12 and rep["config"]["grid_res"] == 64
+    assert rep["counts"]["grid_cells"] == 64**3
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--set", "nope=1"],
+        ["--set", "batch_samples=lots"],
+        ["--preset", "no-such-preset"],
+        ["--platform", "missing.yaml"],
+        ["--search", "--budget-l3", "32 parsecs"],
+        ["--search"],
+    ],
+)
+def test_bad_inputs_are_one_line_errors(tmp_path, capsys, argv):
+    assert main(["cost", "--workdir", str(tmp_path), *argv]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("dronecap cost: error:") and err.count("\n") == 1
+    assert not (tmp_path / "cost.json").exists()
+
+
+def test_run_dir_without_config(tmp_path):
+    (tmp_path / "empty").mkdir()
+    assert main(["cost", str(tmp_path / "empty")]) == 1
+
+
+def test_table2_prints_all_rows(capsys):
+    assert main(["cost", "--table2"]) == 0
+    out = capsys.readouterr().out
+    lines = [ln for ln in out.splitlines() if ln.startswith(("instant-ngp", "b"))]
+    assert len(lines) == 17
+    assert "worst |error|" in out
+
+
+def test_search_with_runs_draws_plot(tmp_path, capsys):
+    runs = [
+        _metrics(tmp_path / "r1", "b8k-t13", 26.9),
+        _metrics(tmp_path / "r2", "b16k-t14", 27.0),
+        _metrics(tmp_path / "r3", "b32k-t14", 27.3),  # best PSNR but 44 MB: over the budget
+        _metrics(tmp_path / "r4", "b4k-t11", 21.0),
+    ]
+    png = tmp_path / "pareto.png"
+    argv = ["cost", "--search", "--budget-l3", "32MB", "--runs", *map(str, runs)]
+    assert main([*argv, "--plot", str(png), "--top", "3"]) == 0
+    out = capsys.readouterr().out
+    # r2 is best among fitting runs; r1 is within 0.25 dB and smaller -> chosen
+    assert "chosen: r1" in out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_search_without_runs_uses_paper_points(tmp_path, capsys):
+    png = tmp_path / "p.png"
+    assert main(["cost", "--search", "--budget-l3", "32MB", "--plot", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "paper's Table II" in out and "chosen: b8k-t13" in out  # the paper's own choice
+    assert png.exists()
+
+
+def test_search_nothing_fits(tmp_path, capsys):
+    png = tmp_path / "p.png"
+    assert main(["cost", "--search", "--budget-l3", "1MB", "--plot", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("0 configurations fit") and "no Table II row fits" in out
+
+
+def test_search_budgets_filter():
+    grid = {"batch_samples": (4096, 65536), "log2_hashmap": (11, 16)}
+    fits = search(Budget(l3=32_000_000), grid=grid)
+    # 64k samples x 762 B = 50 MB of activations: never fits; 2^16 rows x 16 levels x 32 B
+    # = 33.5 MB of state: never fits; only (4096, 2^11) remains
+    assert [(r["batch_samples"], r["log2_hashmap"]) for r in fits] == [(4096, 11)]
+    assert search(Budget(l2=100_000), grid=grid) == []  # a 1024-sample tile needs > 1 MB of L2
+
+
+def test_pareto_and_choice():
+    cfg = preset("tiny-dronerf")
+    pts = [
+        Point("a", cfg, 25.0, mem_mb=10),
+        Point("b", cfg, 27.0, mem_mb=20),
+        Point("c", cfg, 26.0, mem_mb=30),  # dominated by b
+        Point("d", cfg, 27.2, mem_mb=40, fits=False),
+    ]
+    assert [p.label for p in pareto_front(pts)] == ["a", "b", "d"]
+    assert choose(pts, 0.25).label == "b"
+    assert choose(pts, 2.5).label == "a"
+    assert choose([pts[3]]) is None
+
+
+def test_parse_set_and_config_from_dict():
+    cfg = parse_set(preset("tiny-dronerf"), ["batch_samples=4096", "lr=0.5", "auto_n_max=true"])
+    assert (cfg.batch_samples, cfg.lr, cfg.auto_n_max) == (4096, 0.5, True)
+    assert parse_set(cfg, ["betas=0.8,0.9"]).betas == (0.8, 0.9)
+    with pytest.raises(ValueError):
+        parse_set(cfg, ["auto_n_max=maybe"])
+    back = config_from_dict({**dataclasses.asdict(cfg), "unknown": 1})
+    assert back == cfg
