@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -148,6 +149,8 @@ def load_runs(paths: list[str | Path]) -> list[Point]:
             psnr, cfg_d = float(doc["psnr"]), doc["config"]
         except (OSError, ValueError, KeyError, TypeError) as err:
             raise ValueError(f"{p}: not a metrics.json with 'psnr' and 'config' ({err})") from err
+        if not math.isfinite(psnr) or not isinstance(cfg_d, dict):
+            raise ValueError(f"{p}: 'psnr' must be a finite number and 'config' a dict")
         points.append(Point(p.parent.name or str(p), config_from_dict(cfg_d), psnr))
     return points
 

@@ -177,6 +177,15 @@ def _search(args: argparse.Namespace) -> int:
     )
     if budget.l3 is None and budget.l2 is None and budget.l1 is None:
         raise InputError("--search needs at least one of --budget-l3/--budget-l2/--budget-l1")
+    if args.runs:
+        try:
+            points = load_runs(args.runs)
+        except ValueError as err:
+            raise InputError(str(err)) from err
+        title = "measured runs"
+    else:
+        points = paper_points()
+        title = "the paper's Table II PSNRs (published, not measured here)"
     platform = _platform(args)
     fits = search(budget, platform)
     print(f"{len(fits)} configurations fit; the {min(args.top, len(fits))} smallest:")
@@ -188,15 +197,6 @@ def _search(args: argparse.Namespace) -> int:
             f"{r['grid_res']:>4} {r['hidden']:>4} {r['levels']:>3} {r['mem_mb']:>7.2f} "
             f"{r['l2_kb']:>7.0f} {r['gop']:>6.3f} {r['train_min']:>9.1f}"
         )
-    if args.runs:
-        try:
-            points = load_runs(args.runs)
-        except ValueError as err:
-            raise InputError(str(err)) from err
-        title = "measured runs"
-    else:
-        points = paper_points()
-        title = "the paper's Table II PSNRs (published, not measured here)"
     evaluate(points, budget, platform)
     chosen = choose(points, args.tolerance_db)
     out = Path(args.plot) if args.plot else workspace.resolve(args.workdir, None, "pareto.png")

@@ -92,6 +92,16 @@ def test_search_with_runs_draws_plot(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.parametrize("doc", ["not json", '{"psnr": NaN, "config": {}}', '{"config": {}}'])
+def test_search_refuses_bad_metrics(tmp_path, capsys, doc):
+    bad = tmp_path / "metrics.json"
+    bad.write_text(doc)
+    argv = ["cost", "--search", "--budget-l3", "32MB", "--runs", str(bad)]
+    assert main([*argv, "--plot", str(tmp_path / "p.png")]) == 1
+    assert "metrics.json" in capsys.readouterr().err
+    assert not (tmp_path / "p.png").exists()
+
+
 def test_search_without_runs_uses_paper_points(tmp_path, capsys):
     png = tmp_path / "p.png"
     assert main(["cost", "--search", "--budget-l3", "32MB", "--plot", str(png)]) == 0
