@@ -18,7 +18,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from dronecap.capture.framing import CameraModel
+from dronecap.capture.framing import CameraModel, parse_numbers
 
 from dronecap.errors import InputError
 
@@ -35,11 +35,11 @@ def load_intrinsics(spec: str, source_size: tuple[int, int]) -> CameraModel:
         cam = _from_json(path)
     else:
         try:
-            fx, fy, cx, cy = (float(v) for v in spec.split(","))
-        except ValueError:
-            raise InputError(
-                f"--intrinsics must be 'fx,fy,cx,cy' or a calibration JSON file, got {spec!r}"
-            ) from None
+            fx, fy, cx, cy = parse_numbers(
+                spec, 4, float, "--intrinsics must be 'fx,fy,cx,cy' or a calibration JSON file"
+            )
+        except ValueError as err:
+            raise InputError(str(err)) from None
         cam = (fx, fy, cx, cy, None, None)
     fx, fy, cx, cy, w, h = cam
     if not (fx > 0 and fy > 0):

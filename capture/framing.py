@@ -87,6 +87,17 @@ class Framing:
         return cv2.resize(crop, self.size, interpolation=cv2.INTER_AREA)
 
 
+def parse_numbers(text: str, count: int, kind: type, what: str) -> tuple:
+    """``"1,2,3"`` -> a tuple of ``count`` values of type ``kind``; ``ValueError(what ...)``."""
+    try:
+        values = tuple(kind(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != count:
+        raise ValueError(f"{what}, got {text!r}")
+    return values
+
+
 def parse_size(text: str) -> tuple[int, int]:
     """``"160"`` or ``"160x120"`` -> (width, height) in pixels."""
     parts = text.lower().replace("×", "x").split("x")
@@ -120,12 +131,7 @@ def make_framing(source_size: tuple[int, int], size: tuple[int, int], crop: str)
             h = min(sh, max(1, round(sw / aspect)))
             box = (0, (sh - h) // 2, sw, h)
     else:
-        try:
-            x0, y0, w, h = (int(v) for v in crop.split(","))
-        except ValueError:
-            raise ValueError(
-                f"crop must be 'center', 'stretch' or 'X,Y,W,H', got {crop!r}"
-            ) from None
+        x0, y0, w, h = parse_numbers(crop, 4, int, "crop must be 'center', 'stretch' or 'X,Y,W,H'")
         if x0 < 0 or y0 < 0 or w < 1 or h < 1 or x0 + w > sw or y0 + h > sh:
             raise ValueError(f"crop box {crop} does not fit inside the {sw}x{sh} frames")
         box = (x0, y0, w, h)
