@@ -1,34 +1,37 @@
-"""Speed of the hash encoding backends and of a training-step proxy on this CPU.
+"""Speed of the hash encoding backends, a training-step proxy, and ray marching on this CPU.
 
-Measures, for 8192 points at the tiny-dronerf encoding (L=16, F=2, T=2^13, n_min=16,
-n_max=2048): forward+backward of the encoding alone, and a full step proxy (encoding, density
-MLP 32->64->16, colour MLP 31->64->64->3, MSE loss, backward, Adam), for each backend. Prints a
-table of medians over repeats after warm-up and writes it to benchmarks/results/hashgrid_speed.md.
+For 8192 points at the tiny-dronerf encoding (L=16, F=2, T=2^13, n_min=16, n_max=2048) it
+measures forward+backward of the encoding alone, also as 8 tiles of 1024 points (the trainer's
+accumulation), and a full step proxy (encoding, density MLP 32->64->16, colour MLP
+31->64->64->3, MSE, backward, Adam) for each backend; then the occupancy-grid ray marching
+(reference vs C++) of one training batch. Medians of repeats after warm-up; prints a table and
+writes benchmarks/results/hashgrid_speed.md.
 
-    .venv/bin/python benchmarks/hashgrid_speed.py [--repeats 20] [--skip-compile]
+    .venv/bin/python benchmarks/hashgrid_speed.py [--repeats 20] [--threads 2] [--skip-compile]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import torch
+from dronecap.nerf import march_kernel, marching
+from dronecap.nerf.hashgrid import HashGrid, hash_encode_cpp
+from dronecap.nerf.occupancy import GridState
+from dronecap.nerf.rays import ray_aabb
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from dronecap.nerf.hashgrid import HashGrid, hash_encode_cpp  # noqa: E402
-
 N = 8192
+TILE = 1024
 CONFIG = dict(levels=16, features=2, log2_hashmap=13, n_min=16, n_max=2048)
 
 
-def median_ms(fn: Callable[[], None], repeats: int, warmup: int = 5) -> float:
+def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 5) -> float:
     """Median wall time of ``fn()`` in milliseconds over ``repeats`` calls after ``warmup``."""
     for _ in range(warmup):
         fn()
@@ -50,29 +53,35 @@ def mlp(sizes: list[int]) -> torch.nn.Sequential:
     return torch.nn.Sequential(*layers)
 
 
-def encoding_only(grid: HashGrid, x: torch.Tensor, repeats: int, **kw) -> float:
-    """Forward + backward of the encoding alone (ms)."""
-    grad_out = torch.randn(N, grid.out_dim)
+def encoding_ms(grid: HashGrid, x: torch.Tensor, repeats: int, tile: int, mode: str = "") -> float:
+    """Forward + backward of the encoding of ``x`` in tiles of ``tile`` points (ms)."""
+    grad_out = torch.randn(x.shape[0], grid.out_dim)
 
-    def step() -> None:
+    def run() -> None:
         grid.table.grad = None
-        if kw:
-            out = hash_encode_cpp(x, grid.table, grid.resolutions, grid.offsets, 13, **kw)
-        else:
-            out = grid(x)
-        out.backward(grad_out)
+        for s in range(0, x.shape[0], tile):
+            xs = x[s : s + tile]
+            if mode:
+                out = hash_encode_cpp(
+                    xs, grid.table, grid.resolutions, grid.offsets, grid.log2_hashmap, mode
+                )
+            else:
+                out = grid(xs)
+            out.backward(grad_out[s : s + tile])
 
-    return median_ms(step, repeats)
+    return median_ms(run, repeats)
 
 
-def step_proxy(grid: HashGrid, x: torch.Tensor, repeats: int) -> float:
-    """Encoding + both MLPs + MSE + backward + Adam (ms)."""
+def step_proxy_ms(grid: HashGrid, x: torch.Tensor, repeats: int, fused_adam: bool) -> float:
+    """Encoding + both MLPs + MSE + backward + Adam on all of ``x`` at once (ms)."""
     torch.manual_seed(0)
     density, colour = mlp([32, 64, 16]), mlp([31, 64, 64, 3])
-    sh = torch.randn(N, 16)
-    target = torch.rand(N, 3)
+    sh = torch.randn(x.shape[0], 16)
+    target = torch.rand(x.shape[0], 3)
     params = [grid.table, *density.parameters(), *colour.parameters()]
-    opt = torch.optim.Adam(params, lr=1e-2, betas=(0.9, 0.99), eps=1e-15, fused=True)
+    opt = torch.optim.Adam(
+        params, lr=1e-2, betas=(0.9, 0.99), eps=1e-15, fused=fused_adam, foreach=not fused_adam
+    )
 
     def step() -> None:
         opt.zero_grad(set_to_none=True)
@@ -85,47 +94,89 @@ def step_proxy(grid: HashGrid, x: torch.Tensor, repeats: int) -> float:
     return median_ms(step, repeats)
 
 
+def march_rows(repeats: int) -> list[tuple[str, str]]:
+    """Reference vs C++ marching of 1000 rays through a 128^3 grid with a ball occupied (ms)."""
+    g = torch.Generator().manual_seed(0)
+    aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    origins = torch.nn.functional.normalize(torch.randn(1000, 3, generator=g), dim=-1) * 4.0
+    dirs = torch.nn.functional.normalize(
+        torch.rand(1000, 3, generator=g) - 0.5 - origins / 4.0, dim=-1
+    )
+    t_near, t_far, _ = ray_aabb(origins, dirs, aabb)
+    centres = (torch.stack(torch.meshgrid(*[torch.arange(128)] * 3, indexing="ij"), -1) + 0.5) / 64
+    occupied = ((centres - 1.0).norm(dim=-1) < 0.5).reshape(-1)  # a ball of radius 0.5
+    grid = GridState(torch.zeros(128**3), occupied)
+    step = 2.0 * 3**0.5 / 1024
+    jitter = torch.rand(1000, generator=g)
+    args = (origins, dirs, t_near, t_far, step, grid, aabb, 1024, jitter)
+    n = marching.march(*args).n
+    ref = median_ms(lambda: marching.march(*args), max(repeats // 2, 5), warmup=2)
+    cpp = median_ms(lambda: march_kernel.march(*args), repeats)
+    label = (
+        f"march 1000 rays -> {n} samples (128^3 grid, {float(occupied.float().mean()):.1%} occ.)"
+    )
+    return [(f"{label}, reference", f"{ref:.2f}"), (f"{label}, C++", f"{cpp:.2f}")]
+
+
 def main() -> None:
     """Run the measurements, print the table and write the results file."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--skip-compile", action="store_true", help="leave out torch.compile")
     args = parser.parse_args()
+    torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     x = torch.rand(N, 3)
-    rows = []
+    rows: list[tuple[str, str]] = []
+
+    def add(name: str, ms: float) -> None:
+        rows.append((name, f"{ms:.2f}"))
+        print(f"{name:70s} {ms:9.2f} ms", flush=True)
+
     backends = ["torch", "cpp"] + ([] if args.skip_compile else ["compile"])
     for backend in backends:
         grid = HashGrid(**CONFIG, backend=backend)
-        enc = encoding_only(grid, x, args.repeats)
-        full = step_proxy(grid, x, args.repeats)
-        rows.append((f"{backend}", f"{enc:.2f}", f"{full:.2f}"))
-        print(rows[-1], flush=True)
-    grid = HashGrid(**CONFIG, backend="cpp")
-    for mode in ("level", "atomic", "partial"):
-        enc = encoding_only(grid, x, args.repeats, backward_mode=mode)
-        rows.append((f"cpp, backward_mode={mode}", f"{enc:.2f}", "-"))
-        print(rows[-1], flush=True)
+        add(f"encoding fwd+bwd, {N} points, {backend}", encoding_ms(grid, x, args.repeats, N))
+        add(
+            f"encoding fwd+bwd, 8 tiles of {TILE}, {backend}",
+            encoding_ms(grid, x, args.repeats, TILE),
+        )
+        add(
+            f"step proxy, {backend}, fused Adam",
+            step_proxy_ms(grid, x, args.repeats, fused_adam=True),
+        )
+        if backend == "cpp":
+            add(
+                f"step proxy, {backend}, foreach Adam (torch default)",
+                step_proxy_ms(grid, x, args.repeats, fused_adam=False),
+            )
+            for mode in ("level", "atomic", "partial"):
+                add(
+                    f"encoding fwd+bwd, {N} points, cpp backward_mode={mode}",
+                    encoding_ms(grid, x, args.repeats, N, mode),
+                )
     for dtype in (torch.float16, torch.bfloat16):
         grid = HashGrid(**CONFIG, backend="cpp", dtype=dtype)
-        rows.append(
-            (
-                f"cpp, {dtype}",
-                f"{encoding_only(grid, x, args.repeats):.2f}",
-                f"{step_proxy(grid, x, args.repeats):.2f}",
-            )
+        add(
+            f"encoding fwd+bwd, {N} points, cpp, {dtype} storage",
+            encoding_ms(grid, x, args.repeats, N),
         )
-        print(rows[-1], flush=True)
-    header = "| backend | encoding fwd+bwd (ms) | step proxy (ms) |\n|---|---:|---:|\n"
-    table = header + "".join(f"| {a} | {b} | {c} |\n" for a, b, c in rows)
+    for name, ms in march_rows(args.repeats):
+        add(name, float(ms))
+    load = os.getloadavg()[0]
+    table = "| measurement | median ms |\n|---|---:|\n" + "".join(
+        f"| {a} | {b} |\n" for a, b in rows
+    )
     text = (
-        f"# Hash encoding speed\n\n{N} points, L=16 F=2 T=2^13 n_min=16 n_max=2048, "
-        f"torch {torch.__version__}, {torch.get_num_threads()} threads; median of "
-        f"{args.repeats} repeats after 5 warm-up calls.\n"
+        "# Hash encoding and marching speed\n\n"
+        f"Encoding L=16 F=2 T=2^13 n_min=16 n_max=2048; torch {torch.__version__}, "
+        f"{args.threads} threads, {args.repeats} repeats after warm-up (median); machine load "
+        f"average {load:.1f} at the end of the run (the machine is shared: timings are noisy).\n"
         "Step proxy = encoding + density MLP 32->64->16 + colour MLP 31->64->64->3 (bias-free, "
-        "ReLU) + MSE + backward + fused Adam.\n\n"
-        f"Command: `.venv/bin/python benchmarks/hashgrid_speed.py --repeats {args.repeats}`\n\n"
-        + table
+        f"ReLU) + MSE + backward + Adam on {N} points.\n\n"
+        f"Command: `.venv/bin/python benchmarks/hashgrid_speed.py --repeats {args.repeats} "
+        f"--threads {args.threads}{' --skip-compile' if args.skip_compile else ''}`\n\n" + table
     )
     print(table)
     out = REPO / "benchmarks" / "results" / "hashgrid_speed.md"
