@@ -1,0 +1,142 @@
+"""``dronecap federate``: FedAvg of Tiny-DroNeRF across drones on Flower (simulation engine)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+HELP = "FedAvg across drones on Flower"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of ``dronecap federate``."""
+    p.add_argument(
+        "input",
+        nargs="?",
+        help="dataset.h5 (sharded here into RUN/shards) or a shards/ folder of client_K.h5 "
+        "(default: the workspace's shards/)",
+    )
+    p.add_argument("--clients", type=int, default=4, help="drones K (default 4)")
+    p.add_argument("--scheme", choices=("iid", "sector"), default="iid", help="sharding scheme")
+    p.add_argument("--pretrain", type=int, default=10_000, help="coordinator's N_pt steps")
+    p.add_argument("--local-steps", type=int, default=1000, help="N_l steps per drone per round")
+    p.add_argument("--rounds", type=int, default=5, help="communication rounds R")
+    p.add_argument("--preset", default="tiny-dronerf", help="trainer preset (nerf/config.py)")
+    p.add_argument("--exchange-grid", action="store_true", help="also average the occupancy grids")
+    p.add_argument("--transfer-dtype", choices=("fp32", "fp16"), default="fp32")
+    p.add_argument(
+        "--baselines",
+        action="store_true",
+        help="also train centralized and single-drone baselines on the same step budget",
+    )
+    p.add_argument("--eval-views", type=int, default=0, help="test views per round (0: all)")
+    p.add_argument("--round-timeout", type=float, default=3600.0, help="seconds per round")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--fail-client",
+        type=int,
+        default=-1,
+        help="fault injection: this drone raises in --fail-round (left out of that average)",
+    )
+    p.add_argument("--fail-round", type=int, default=-1)
+    p.add_argument("--restart", action="store_true", help="discard an existing run in --out")
+    p.add_argument("--out", help="run folder (default: runs/federate in the workspace)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Shard if needed, run (or resume) the federation, the baselines, and the plot."""
+    import dataclasses
+
+    from dronecap import workspace
+    from dronecap.errors import InputError
+    from dronecap.nerf.config import preset
+
+    out = workspace.resolve(args.workdir, args.out, workspace.FEDERATE_RUN).resolve()
+    src = workspace.resolve(args.workdir, args.input, workspace.SHARDS)
+    if not src.exists():
+        raise InputError("no such dataset or shards folder", src)
+    for name in ("pretrain", "local_steps", "rounds", "clients"):
+        if getattr(args, name) < (0 if name == "pretrain" else 1):
+            raise InputError(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
+    try:
+        cfg = preset(args.preset)
+    except KeyError as err:
+        raise InputError(str(err.args[0])) from None
+    if args.restart and out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    shards = _shards(src, out, args)
+
+    from dronecap.nerf import federated as fed
+
+    s = fed.FedSettings(
+        shards=[str(p) for p in shards],
+        cfg=dataclasses.asdict(cfg),
+        pretrain=args.pretrain,
+        local_steps=args.local_steps,
+        rounds=args.rounds,
+        exchange_grid=args.exchange_grid,
+        transfer_dtype=args.transfer_dtype,
+        eval_views=args.eval_views,
+        round_timeout=args.round_timeout,
+        fail_client=args.fail_client,
+        fail_round=args.fail_round,
+        seed=args.seed,
+    )
+    if (out / fed.SETTINGS).exists() and fed.load_settings(out) != s:
+        raise InputError(
+            "holds a run with other settings: pass --restart to discard it, or another --out",
+            out,
+        )
+    fed.save_settings(out, s)
+    done = len(fed.load_rounds(out))
+    if done:
+        print(f"resuming after round {done - 1} of {s.rounds}")
+    rounds = fed.run_simulated(out)
+    if not rounds or rounds[-1]["round"] != s.rounds:
+        raise InputError(f"the federation stopped after {len(rounds)} rounds; see the log", out)
+    if args.baselines:
+        from dronecap.nerf.fedbaselines import run_baselines
+
+        run_baselines(out, s)
+    from dronecap.nerf.fedplot import plot_runs
+
+    doc = json.loads((out / fed.ROUNDS).read_text())
+    plot_runs({f"{args.scheme} ({s.n_clients} drones)": doc}, out / "psnr.png")
+    _summary(doc)
+    print(f"wrote {out}: rounds.json, psnr.png, checkpoint.pt")
+    return 0
+
+
+def _shards(src: Path, out: Path, args: argparse.Namespace) -> list[Path]:
+    """The drones' shard files: those of a shards/ folder, or new ones cut from a dataset."""
+    from dronecap.errors import InputError
+
+    if src.is_file():
+        from dronecap.datasets.shard import shard_dataset
+
+        folder = out / "shards"
+        if not (folder / "client_0.h5").exists():
+            shard_dataset(src, folder, args.clients, args.scheme, seed=args.seed)
+        src = folder
+    files = sorted(src.glob("client_*.h5"), key=lambda p: int(p.stem.split("_")[1]))
+    if not files:
+        raise InputError("holds no client_K.h5 shard files (run `dronecap shard`)", src)
+    if [int(p.stem.split("_")[1]) for p in files] != list(range(len(files))):
+        raise InputError("shard files must be client_0.h5 ... client_{K-1}.h5", src)
+    if len(files) != args.clients:
+        raise InputError(f"holds {len(files)} shards but --clients is {args.clients}", src)
+    return [p.resolve() for p in files]
+
+
+def _summary(doc: dict) -> None:
+    """Print one line per round and the baselines' final PSNR."""
+    for r in doc["rounds"]:
+        up = r["bytes_up_total"] / 1e6
+        link = "" if r.get("link_s") is None else f", link {r['link_s']:.2f} s"
+        fails = f", left out: {sorted(r['failed'])}" if r.get("failed") else ""
+        print(f"round {r['round']:3d}: PSNR {r['psnr']:6.2f} dB, up {up:.3f} MB{link}{fails}")
+    for name, curve in sorted(doc.get("baselines", {}).items()):
+        print(f"{name:>12}: PSNR {curve[-1]['psnr']:6.2f} dB after {curve[-1]['steps']} steps")

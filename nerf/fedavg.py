@@ -1,0 +1,177 @@
+"""FedAvg for Tiny-DroNeRF: what a drone sends, how updates are averaged, and what it costs.
+
+A drone's update is a flat ``{name: array}`` dict. Model parameters (hash table + MLPs, the
+trainer's ``model_weights()``) are keyed ``model/<name>``; the occupancy grid (the trainer's
+``grid_state()``), only when it is exchanged, is keyed ``grid/<name>``. Floating arrays travel in
+the transfer dtype (fp32 or fp16); the server averages them in float32 with Flower's FedAvg,
+weighted by each drone's train-image count. Integer and boolean arrays (e.g. a grid's occupancy
+bits) never travel: a drone rebuilds them from the densities it receives.
+
+Byte accounting is exact: :func:`payload_bytes` sums the serialised size of every object Flower
+transmits for a message's content (its record dict, array records, array headers and data
+chunks, each as ``deflate()`` produces it), so it is what goes through the SuperLink, not an
+estimate from array sizes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import numpy as np
+from flwr.app import Array, ArrayRecord, Message, MetricRecord, RecordDict
+from flwr.serverapp.strategy import FedAvg
+
+MODEL = "model/"
+GRID = "grid/"
+TRANSFER_DTYPES = {"fp32": np.float32, "fp16": np.float16}
+WEIGHT_KEY = "num-examples"  # MetricRecord key FedAvg weights by: the drone's train images
+
+
+def pack_update(
+    model: Mapping[str, np.ndarray],
+    grid: Mapping[str, np.ndarray] | None,
+    transfer_dtype: str = "fp32",
+) -> dict[str, np.ndarray]:
+    """The arrays one drone sends: model parameters, plus the grid's floating arrays if given.
+
+    ``model`` and ``grid`` map names to arrays of any shape; floating arrays are cast to
+    ``transfer_dtype`` ("fp32" or "fp16"); non-floating grid arrays are left out (derived data).
+    """
+    if transfer_dtype not in TRANSFER_DTYPES:
+        raise ValueError(f"transfer dtype {transfer_dtype!r}; known: {sorted(TRANSFER_DTYPES)}")
+    dtype = TRANSFER_DTYPES[transfer_dtype]
+    out: dict[str, np.ndarray] = {}
+    for prefix, part in ((MODEL, model), (GRID, grid or {})):
+        for name, arr in part.items():
+            a = np.asarray(arr)
+            if prefix == GRID and not np.issubdtype(a.dtype, np.floating):
+                continue
+            out[prefix + name] = np.ascontiguousarray(a.astype(dtype, copy=False))
+    return out
+
+
+def unpack_update(
+    arrays: Mapping[str, np.ndarray],
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Split received arrays back into (model, grid) dicts, floating arrays as float32."""
+    model: dict[str, np.ndarray] = {}
+    grid: dict[str, np.ndarray] = {}
+    for key, arr in arrays.items():
+        a = np.asarray(arr)
+        if np.issubdtype(a.dtype, np.floating):
+            a = a.astype(np.float32, copy=False)
+        if key.startswith(MODEL):
+            model[key[len(MODEL) :]] = a
+        elif key.startswith(GRID):
+            grid[key[len(GRID) :]] = a
+        else:
+            raise KeyError(f"unexpected array {key!r} in a federated update")
+    return model, grid
+
+
+def weighted_mean(
+    updates: list[Mapping[str, np.ndarray]], weights: list[float]
+) -> dict[str, np.ndarray]:
+    """Reference FedAvg: ``sum_k w_k x_k / sum_k w_k`` per array, computed in float64.
+
+    ``updates[k][name]`` has the same shape for every k; returns float32 arrays.
+    """
+    if not updates or len(updates) != len(weights):
+        raise ValueError("need one weight per update and at least one update")
+    total = float(sum(weights))
+    return {
+        name: (
+            sum(
+                np.asarray(u[name], np.float64) * (w / total)
+                for u, w in zip(updates, weights, strict=True)
+            )
+        ).astype(np.float32)
+        for name in updates[0]
+    }
+
+
+def to_record(arrays: Mapping[str, np.ndarray]) -> ArrayRecord:
+    """Wrap arrays for a Flower message (no copy of the numpy data beyond .npy encoding)."""
+    return ArrayRecord({k: Array(np.ascontiguousarray(v)) for k, v in arrays.items()})
+
+
+def from_record(record: ArrayRecord) -> dict[str, np.ndarray]:
+    """The numpy arrays of a received ArrayRecord, dtypes as sent."""
+    return {k: v.numpy() for k, v in record.items()}
+
+
+def payload_bytes(content: RecordDict) -> int:
+    """Exact bytes Flower serialises for a message's content.
+
+    The sum of ``len(obj.deflate())`` over every distinct object of the content tree (record
+    dict, records, array headers, array data chunks), as Flower's object store transmits them.
+    """
+    seen: set[str] = set()
+    stack: list[Any] = [content]
+    total = 0
+    while stack:
+        obj = stack.pop()
+        if obj.object_id in seen:
+            continue
+        seen.add(obj.object_id)
+        total += len(obj.deflate())
+        stack.extend((obj.children or {}).values())
+    return total
+
+
+def array_data_bytes(arrays: Mapping[str, np.ndarray]) -> int:
+    """Raw tensor bytes (no headers): sum of ``arr.nbytes``."""
+    return int(sum(np.asarray(a).nbytes for a in arrays.values()))
+
+
+class DroneFedAvg(FedAvg):
+    """Flower's FedAvg, plus exact byte accounting and float32 accumulation of fp16 updates.
+
+    Aggregation itself is Flower's (``FedAvg.aggregate_train``, weighted by ``num-examples``);
+    before it, each reply's arrays are up-cast to float32 so fp16 transfer does not also mean
+    fp16 accumulation. After each ``configure_train``/``aggregate_train``, ``self.last_round``
+    holds ``bytes_down`` (per destination node), ``bytes_up`` (per replying node) and ``failed``
+    (node id -> reason) of that round.
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        kwargs.setdefault("weighted_by_key", WEIGHT_KEY)
+        kwargs.setdefault("fraction_evaluate", 0.0)  # the global model is tested server-side
+        super().__init__(**kwargs)
+        self.last_round: dict[str, Any] = {}
+
+    def configure_train(self, server_round, arrays, config, grid) -> Iterable[Message]:  # noqa: D102
+        messages = list(super().configure_train(server_round, arrays, config, grid))
+        self.last_round = {
+            "bytes_down": {m.metadata.dst_node_id: payload_bytes(m.content) for m in messages},
+            "bytes_up": {},
+            "failed": {},
+        }
+        return messages
+
+    def aggregate_train(  # noqa: D102
+        self, server_round: int, replies: Iterable[Message]
+    ) -> tuple[ArrayRecord | None, MetricRecord | None]:
+        ok: list[Message] = []
+        for msg in replies:
+            node = msg.metadata.src_node_id
+            if msg.has_error():
+                self.last_round["failed"][node] = msg.error.reason
+                continue
+            self.last_round["bytes_up"][node] = payload_bytes(msg.content)
+            ok.append(_upcast(msg))
+        return super().aggregate_train(server_round, ok)
+
+
+def _upcast(msg: Message) -> Message:
+    """The same reply with floating arrays in float32 (in place on the received content)."""
+    for key in list(msg.content.array_records):
+        arrays = from_record(msg.content.array_records[key])
+        msg.content.array_records[key] = to_record(
+            {
+                k: a.astype(np.float32) if np.issubdtype(a.dtype, np.floating) else a
+                for k, a in arrays.items()
+            }
+        )
+    return msg

@@ -1,0 +1,102 @@
+"""Baselines of a federated run, on the same step budget: centralized and each drone alone.
+
+Both train one model for ``N_pt + R * N_l`` steps (the coordinator's critical path in the
+federated run: the x axis of the paper's curves) and are tested at the same marks as the global
+model (after ``N_pt``, then every ``N_l`` steps) on the same test views:
+
+- ``centralized``: on the union of every drone's train images (the upper bound);
+- ``client_K``: on drone K's train images only.
+
+Each baseline checkpoints at every mark (``RUN/baselines/<name>.pt``) and records its curve in
+``RUN/rounds.json`` under ``baselines``, so an interrupted run resumes at its last mark.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+from dronecap.datasets.format import Dataset
+from dronecap.nerf.federated import (
+    FedSettings,
+    load_rounds,
+    save_rounds,
+    test_split,
+    train_split,
+)
+
+from dronecap.files import atomic_output
+
+
+def union_train(paths: list[str]) -> Dataset:
+    """The train frames of several shard files as one dataset (frames in shard order)."""
+    parts = [train_split(p) for p in paths]
+    first = parts[0]
+
+    def cat(name: str) -> np.ndarray | None:
+        if getattr(first, name) is None:
+            return None
+        return np.concatenate([getattr(p, name) for p in parts])
+
+    return dataclasses.replace(
+        first,
+        images=cat("images"),
+        alpha=cat("alpha"),
+        poses=cat("poses"),
+        split=cat("split"),
+        near_far=cat("near_far"),
+        names=None,
+        source_index=None,
+        timestamps=None,
+        shards={},
+        extra={},
+    )
+
+
+def baseline_trainsets(s: FedSettings) -> dict[str, Dataset]:
+    """name -> train set of every baseline (``centralized``, ``client_0`` ...)."""
+    sets = {"centralized": union_train(s.shards)}
+    sets.update({f"client_{k}": train_split(p) for k, p in enumerate(s.shards)})
+    return sets
+
+
+def marks(s: FedSettings) -> list[int]:
+    """Step counts at which models are tested: N_pt, N_pt + N_l, ..., N_pt + R N_l."""
+    return [s.pretrain + r * s.local_steps for r in range(s.rounds + 1)]
+
+
+def run_baseline(run_dir: Path, s: FedSettings, name: str, train: Dataset) -> list[dict]:
+    """Train (or resume) one baseline to the full budget; returns its curve.
+
+    The curve is a list of ``{"steps", "psnr", "ssim"}``, one per mark, stored in
+    ``rounds.json["baselines"][name]`` after every mark.
+    """
+    from dronecap.nerf.trainer import Trainer
+
+    ckpt = Path(run_dir) / "baselines" / f"{name}.pt"
+    curve = _curves(run_dir).get(name, [])
+    trainer = Trainer.load(ckpt, train=train) if curve else Trainer(s.train_config(), train)
+    test = test_split(s.shards[0], s.eval_views)
+    for m in marks(s)[len(curve) :]:
+        trainer.train(m - trainer.step, progress=False)
+        with atomic_output(ckpt) as tmp:
+            trainer.save(tmp)
+        metrics = trainer.evaluate(test)
+        curve.append({"steps": m, "psnr": float(metrics["psnr"]), "ssim": float(metrics["ssim"])})
+        curves = _curves(run_dir)
+        curves[name] = curve
+        save_rounds(run_dir, s, load_rounds(run_dir), baselines=curves)
+    return curve
+
+
+def run_baselines(run_dir: Path, s: FedSettings, names: list[str] | None = None) -> dict:
+    """Run the named baselines (default: all); returns name -> curve."""
+    sets = baseline_trainsets(s)
+    return {n: run_baseline(run_dir, s, n, sets[n]) for n in (names or list(sets))}
+
+
+def _curves(run_dir: Path) -> dict[str, list[dict]]:
+    p = Path(run_dir) / "rounds.json"
+    return dict(json.loads(p.read_text()).get("baselines", {})) if p.exists() else {}

@@ -1,0 +1,52 @@
+"""The PSNR-vs-step figure of federated runs (the paper's Figure: IID vs non-IID panels)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from dronecap.files import atomic_output
+
+
+def plot_runs(panels: dict[str, dict], path: str | Path) -> Path:
+    """One panel per run: global-model PSNR per round, and the baselines' curves.
+
+    Args:
+        panels: title -> a ``rounds.json`` document ({"rounds": [...], "baselines": {...}}).
+        path: PNG to write (atomically).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), squeeze=False)
+    for ax, (title, doc) in zip(axes[0], panels.items(), strict=True):
+        rounds = doc.get("rounds", [])
+        ax.plot(
+            [r["steps"] for r in rounds],
+            [r["psnr"] for r in rounds],
+            "o-",
+            color="black",
+            lw=2,
+            label="federated (global model)",
+        )
+        for name, curve in sorted(doc.get("baselines", {}).items()):
+            central = name == "centralized"
+            ax.plot(
+                [c["steps"] for c in curve],
+                [c["psnr"] for c in curve],
+                "--" if central else ":",
+                lw=1.5 if central else 1.0,
+                color="tab:red" if central else None,
+                label=name.replace("_", " ") + (" (upper bound)" if central else " alone"),
+            )
+        ax.set_title(title)
+        ax.set_xlabel("optimizer steps (coordinator's critical path)")
+        ax.set_ylabel("test PSNR [dB]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return Path(path)

@@ -1,0 +1,146 @@
+"""FedAvg maths and byte accounting on hand-made tensors (no Flower run, no training)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from dronecap.datasets.format import Dataset, Intrinsics, write_dataset
+from dronecap.nerf.config import preset
+from dronecap.nerf.fedavg import (
+    WEIGHT_KEY,
+    array_data_bytes,
+    from_record,
+    pack_update,
+    payload_bytes,
+    to_record,
+    unpack_update,
+    weighted_mean,
+)
+from flwr.app import MetricRecord, RecordDict
+from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
+
+
+def _reply(update: dict[str, np.ndarray], n_images: int) -> RecordDict:
+    return RecordDict(
+        {"arrays": to_record(update), "metrics": MetricRecord({WEIGHT_KEY: n_images})}
+    )
+
+
+def test_weighted_mean_by_image_count():
+    a = {"w": np.array([0.0, 2.0], np.float32), "b": np.array([[1.0]], np.float32)}
+    b = {"w": np.array([4.0, 6.0], np.float32), "b": np.array([[5.0]], np.float32)}
+    # weights 1 and 3: (0*1 + 4*3)/4 = 3, (2 + 18)/4 = 5, (1 + 15)/4 = 4
+    m = weighted_mean([a, b], [1, 3])
+    np.testing.assert_allclose(m["w"], [3.0, 5.0])
+    np.testing.assert_allclose(m["b"], [[4.0]])
+    # equal shards: the arithmetic mean (the paper's case)
+    np.testing.assert_allclose(weighted_mean([a, b], [25, 25])["w"], [2.0, 4.0])
+
+
+def test_flower_fedavg_matches_reference_on_packed_updates():
+    rng = np.random.default_rng(0)
+    updates = [
+        {"encoding.table": rng.normal(size=(7, 2)), "mlp.0.weight": rng.normal(size=(3, 4))}
+        for _ in range(3)
+    ]
+    counts = [25, 25, 50]
+    replies = [_reply(pack_update(u, None), n) for u, n in zip(updates, counts, strict=True)]
+    model, grid = unpack_update(from_record(aggregate_arrayrecords(replies, WEIGHT_KEY)))
+    ref = weighted_mean(updates, counts)
+    assert grid == {}
+    for k in ref:
+        np.testing.assert_allclose(model[k], ref[k], rtol=1e-5, atol=1e-6)
+        assert model[k].dtype == np.float32
+
+
+def test_grid_kept_local_unless_exchanged():
+    model = {"t": np.ones((4, 2), np.float32)}
+    grid = {"density": np.array([0.0, 0.5, 0.02], np.float32), "occupied": np.ones(3, bool)}
+    local = pack_update(model, None)
+    assert sorted(local) == ["model/t"]
+    shared = pack_update(model, grid)
+    # densities travel, occupancy bits (derived data) do not
+    assert sorted(shared) == ["grid/density", "model/t"]
+    m, g = unpack_update(shared)
+    np.testing.assert_array_equal(m["t"], model["t"])
+    np.testing.assert_array_equal(g["density"], grid["density"])
+    with pytest.raises(KeyError):
+        unpack_update({"optimizer/exp_avg": np.zeros(2)})
+
+
+def test_fp16_transfer_halves_the_data_and_rounds_to_half_precision():
+    x = {"t": np.array([1.0, 1.0 + 2**-12, 3.14159], np.float32)}
+    p32, p16 = pack_update(x, None, "fp32"), pack_update(x, None, "fp16")
+    assert p16["model/t"].dtype == np.float16
+    assert array_data_bytes(p32) == 12 and array_data_bytes(p16) == 6
+    back, _ = unpack_update(p16)
+    # 1 + 2^-12 is below half an fp16 ulp at 1 (2^-11) -> 1; pi -> 3.140625 (fp16 grid 2^-9)
+    np.testing.assert_array_equal(back["t"], np.array([1.0, 1.0, 3.140625], np.float32))
+    with pytest.raises(ValueError):
+        pack_update(x, None, "int8")
+
+
+def test_payload_bytes_counts_every_serialised_byte_of_the_arrays():
+    n = 1000
+    one = {"t": np.zeros(n, np.float32)}
+    two = {"t": np.zeros(n, np.float32), "u": np.ones(n, np.float32)}
+    b32 = payload_bytes(_reply(pack_update(one, None, "fp32"), 1))
+    b16 = payload_bytes(_reply(pack_update(one, None, "fp16"), 1))
+    # Same headers (the .npy header is padded to 128 bytes either way): exactly 2 bytes/value less
+    assert b32 - b16 == 2 * n
+    # A second array of n fp32 values adds its 4n data bytes plus bounded header overhead
+    extra = payload_bytes(_reply(pack_update(two, None, "fp32"), 1)) - b32
+    assert 4 * n <= extra <= 4 * n + 1000
+
+
+def test_tiny_dronerf_payload_without_grid_in_fp16():
+    """The hash table (16 levels x 8192 rows x 2, level 0 dense with 17^3 rows) + MLPs."""
+    from dronecap.nerf.hashgrid import level_offsets, level_resolutions
+
+    cfg = preset("tiny-dronerf")
+    rows = level_offsets(level_resolutions(cfg.levels, cfg.n_min, cfg.n_max), cfg.log2_hashmap)[-1]
+    assert rows == 17**3 + 15 * 8192  # level 0 is indexed densely
+    h = cfg.hidden
+    shapes = {
+        "encoding.table": (rows, 2),
+        "density_mlp.0.weight": (h, 32),
+        "density_mlp.2.weight": (16, h),
+        "color_mlp.0.weight": (h, 32),
+        "color_mlp.2.weight": (h, h),
+        "color_mlp.4.weight": (3, h),
+    }
+    # distinct random values: identical arrays would be sent once (Flower dedups objects)
+    rng = np.random.default_rng(0)
+    model = {k: rng.normal(size=s).astype(np.float32) for k, s in shapes.items()}
+    values = rows * 2 + h * 32 * 2 + 16 * h + h * h + 3 * h
+    up = payload_bytes(_reply(pack_update(model, None, "fp16"), 25))
+    assert 2 * values <= up <= 2 * values + 4000  # data + headers (~500 B per array)
+    assert up < 0.54e6
+
+
+def test_union_of_shards_keeps_every_train_frame(tmp_path):
+    from dronecap.nerf.fedbaselines import union_train
+
+    k = Intrinsics(10.0, 10.0, 2.0, 2.0, 4, 4)
+
+    def shard(value: int, n_train: int) -> str:
+        n = n_train + 1
+        ds = Dataset(
+            images=np.full((n, 4, 4, 3), value, np.uint8),
+            kind="shard",
+            poses=np.tile(np.eye(4), (n, 1, 1)),
+            intrinsics=k,
+            split=np.array([0] * n_train + [2], np.int8),
+            aabb=np.array([[-1.0, -1, -1], [1, 1, 1]]),
+        )
+        p = tmp_path / f"client_{value}.h5"
+        write_dataset(p, ds)
+        return str(p)
+
+    u = union_train([shard(1, 2), shard(2, 3)])
+    assert u.n == 5
+    assert [int(im[0, 0, 0]) for im in u.images] == [1, 1, 2, 2, 2]
+    assert (u.split == 0).all() and u.poses.shape == (5, 4, 4)
+    assert dataclasses.replace(u).intrinsics == k
