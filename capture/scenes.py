@@ -136,7 +136,10 @@ def _wall_texture(rng: np.random.Generator, w: int, h: int, kind: str) -> np.nda
     """Texture [h, w] texels for a wall ``kind``: 'brick', 'plaster' or 'posters'."""
     fine = camo(rng, (h, w), (40.0, 12.0, 5.0), levels=6)
     if kind == "brick":
-        base = tiles(rng, (h, w), (16, 48), 2, stagger=True) * (0.8 + 0.25 * fine)
+        # Stains at large scale make each stretch of the (repetitive) bricks unique.
+        stains = camo(rng, (h, w), (150.0, 50.0, 15.0), levels=6)
+        base = tiles(rng, (h, w), (16, 48), 2, stagger=True) * (0.45 + 0.55 * stains)
+        base *= 0.85 + 0.2 * fine
     else:
         base = 0.45 + 0.35 * camo(rng, (h, w), (90.0, 30.0, 10.0), levels=5)
     if kind == "plaster":  # doors: tall dark frames with a lighter panel
@@ -155,7 +158,8 @@ def corridor(seed: int = 0) -> Scene:
     length, width, height = x1 - x0, 2 * hw, top
     px = int(length / TEXEL)
     pw, ph = int(width / TEXEL), int(height / TEXEL)
-    floor_tex = tiles(rng, (pw, px), (60, 60), 2) * (0.75 + 0.3 * camo(rng, (pw, px), (25.0, 8.0)))
+    stains = camo(rng, (pw, px), (120.0, 40.0, 10.0), levels=6)
+    floor_tex = tiles(rng, (pw, px), (60, 60), 2) * (0.5 + 0.55 * stains)
     ceiling_tex = tiles(rng, (pw, px), (120, 120), 4) * 0.45 + 0.15
     for xc in np.arange(100, px, 300):  # ceiling lamps
         ceiling_tex[pw // 2 - 25 : pw // 2 + 25, xc : xc + 120] = 0.8

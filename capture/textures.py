@@ -62,8 +62,9 @@ def add_posters(
     size: tuple[int, int],
     rows: tuple[int, int] | None = None,
 ) -> np.ndarray:
-    """Paste ``count`` framed rectangles of random content (camo or a checkerboard) onto a copy of
-    ``canvas`` [H, W]; sides in texels within ``size``; top edges within ``rows`` if given."""
+    """Paste ``count`` framed rectangles of random multi-scale content onto a copy of ``canvas``
+    [H, W]; sides in texels within ``size``; top edges within ``rows`` if given. (No
+    checkerboards: repeated patterns make SIFT match the wrong copy.)"""
     out = canvas.copy()
     h, w = out.shape
     for _ in range(count):
@@ -72,13 +73,7 @@ def add_posters(
         lo, hi = rows if rows is not None else (0, h - ph)
         y0 = int(rng.integers(lo, max(lo + 1, min(hi, h - ph))))
         x0 = int(rng.integers(0, w - pw))
-        if rng.random() < 0.35:
-            cell = int(rng.integers(6, 16))
-            yy, xx = np.mgrid[0:ph, 0:pw] // cell
-            lo_g, hi_g = sorted(rng.uniform(0.1, 0.95, 2))
-            content = np.where((yy + xx) % 2 == 0, lo_g, hi_g).astype(np.float32)
-        else:
-            content = camo(rng, (ph, pw), (pw / 3, pw / 9, pw / 25), levels=5)
+        content = camo(rng, (ph, pw), (pw / 3, pw / 9, pw / 25), levels=5)
         border = max(2, min(ph, pw) // 20)
         out[y0 : y0 + ph, x0 : x0 + pw] = 0.08
         out[y0 + border : y0 + ph - border, x0 + border : x0 + pw - border] = content[
