@@ -107,3 +107,68 @@ def preset(name: str) -> TrainConfig:
     if name not in PRESETS:
         raise KeyError(f"unknown preset {name!r}; known: {', '.join(sorted(PRESETS))}")
     return dataclasses.replace(PRESETS[name])
+
+
+def parse_field(name: str, text: str) -> Any:
+    """Parse ``text`` as the value of TrainConfig field ``name`` (ValueError when it cannot).
+
+    Booleans take true/false/1/0/yes/no; ``betas`` takes "0.9,0.99".
+    """
+    fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
+    if name not in fields:
+        raise ValueError(f"unknown setting {name!r}; known: {', '.join(sorted(fields))}")
+    default = getattr(TrainConfig(), name)
+    if isinstance(default, bool):
+        low = text.strip().lower()
+        if low not in ("true", "false", "1", "0", "yes", "no"):
+            raise ValueError(f"{name} takes true or false, got {text!r}")
+        return low in ("true", "1", "yes")
+    if isinstance(default, tuple):
+        parts = [float(p) for p in text.split(",")]
+        if len(parts) != len(default):
+            raise ValueError(f"{name} takes {len(default)} comma-separated numbers, got {text!r}")
+        return tuple(parts)
+    if isinstance(default, int):
+        return int(float(text)) if "e" in text.lower() else int(text)
+    return type(default)(text)
+
+
+def add_config_arguments(parser: Any) -> None:
+    """Add ``--preset``, ``--set k=v`` and one ``--field-name VALUE`` option per TrainConfig
+    field to an argparse parser (options default to "not given")."""
+    parser.add_argument(
+        "--preset", default="tiny-dronerf", help=f"named configuration: {', '.join(PRESETS)}"
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override any configuration field (repeatable)",
+    )
+    group = parser.add_argument_group("configuration fields (override the preset)")
+    for f in dataclasses.fields(TrainConfig):
+        group.add_argument(
+            "--" + f.name.replace("_", "-"),
+            dest=f"cfg_{f.name}",
+            default=None,
+            metavar="V",
+            help=f"{f.name} (preset value otherwise)",
+        )
+
+
+def config_from_args(args: Any) -> TrainConfig:
+    """The TrainConfig that :func:`add_config_arguments` options describe (ValueError/KeyError
+    on unknown presets, fields or unparsable values)."""
+    cfg = preset(args.preset)
+    changes: dict[str, Any] = {}
+    for item in args.set:
+        if "=" not in item:
+            raise ValueError(f"--set takes FIELD=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        changes[k.strip().replace("-", "_")] = parse_field(k.strip().replace("-", "_"), v)
+    for f in dataclasses.fields(TrainConfig):
+        text = getattr(args, f"cfg_{f.name}", None)
+        if text is not None:
+            changes[f.name] = parse_field(f.name, text)
+    return cfg.replace(**changes)

@@ -1,0 +1,141 @@
+"""The Tiny-DroNeRF radiance field: hash encoding, density MLP, SH + colour MLP.
+
+Points are in scene units and mapped to the unit cube of the dataset's AABB before encoding.
+The colour head has as many channels as the data (1 gray, 3 RGB).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from .config import TrainConfig
+from .hashgrid import HashGrid
+from .sh import sh_dim, sh_encode
+
+DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
+MAX_LOG_DENSITY = 15.0  # exp(15) ~ 3.3e6 per scene unit: opaque at any step size in use
+
+
+def storage_dtype(precision: str) -> torch.dtype:
+    """torch dtype of a ``TrainConfig.precision`` name ("fp32", "fp16", "bf16")."""
+    if precision not in DTYPES:
+        raise ValueError(f"precision must be one of {sorted(DTYPES)}, got {precision!r}")
+    return DTYPES[precision]
+
+
+def round_to(x: Tensor, dtype: torch.dtype) -> Tensor:
+    """``x`` rounded to ``dtype`` and back to float32 (gradient passes straight through)."""
+    return x if dtype == torch.float32 else x.to(dtype).to(torch.float32)
+
+
+def trunc_exp(x: Tensor) -> Tensor:
+    """Density activation exp(x) with x clamped to [-15, 15]: never overflows, even in fp16."""
+    return torch.exp(x.clamp(-MAX_LOG_DENSITY, MAX_LOG_DENSITY))
+
+
+def auto_n_max(aabb: np.ndarray, near: float, focal: float) -> int:
+    """Finest useful grid resolution: AABB extent over the pixel footprint at distance ``near``.
+
+    Args:
+        aabb: [2, 3] scene bounds (scene units).
+        near: typical camera-to-surface distance (scene units), e.g. the mean near distance.
+        focal: focal length in pixels.
+
+    Returns:
+        cells per axis (at least 16), the extent of the largest AABB side in pixel footprints.
+    """
+    extent = float(np.max(aabb[1] - aabb[0]))
+    footprint = max(near, 1e-6) / focal
+    return max(16, int(math.ceil(extent / footprint)))
+
+
+def _mlp(n_in: int, hidden: int, layers: int, n_out: int) -> nn.Sequential:
+    """Bias-free ReLU MLP with ``layers`` hidden layers of ``hidden`` units (as tcnn's)."""
+    mods: list[nn.Module] = []
+    width = n_in
+    for _ in range(layers):
+        mods += [nn.Linear(width, hidden, bias=False), nn.ReLU()]
+        width = hidden
+    mods.append(nn.Linear(width, n_out, bias=False))
+    return nn.Sequential(*mods)
+
+
+class Field(nn.Module):
+    """Hash grid + density MLP (density, geometry features) + colour MLP on SH of directions.
+
+    Args:
+        cfg: levels, features, log2_hashmap, n_min, hidden, layer counts, geo_features,
+            sh_degree, precision.
+        channels: colour channels C of the head (1 or 3, or any other count).
+        aabb: [2, 3] bounds in scene units; points are normalised to the unit cube over it.
+        n_max: finest hash-grid resolution (cfg.n_max or the auto value).
+        backend: hash-grid backend ("auto", "cpp", "torch", "compile").
+    """
+
+    def __init__(
+        self, cfg: TrainConfig, channels: int, aabb: np.ndarray, n_max: int, backend: str = "auto"
+    ) -> None:
+        super().__init__()
+        self.dtype = storage_dtype(cfg.precision)
+        self.channels = channels
+        self.encoding = HashGrid(
+            cfg.levels, cfg.features, cfg.log2_hashmap, cfg.n_min, n_max, backend, self.dtype
+        )
+        self.density_mlp = _mlp(
+            self.encoding.out_dim, cfg.hidden, cfg.density_layers, cfg.geo_features
+        )
+        self.sh_degree = cfg.sh_degree
+        n_in = cfg.geo_features + sh_dim(cfg.sh_degree)
+        self.color_mlp = _mlp(n_in, cfg.hidden, cfg.color_layers, channels)
+        a = torch.as_tensor(np.asarray(aabb), dtype=torch.float32)
+        self.register_buffer("aabb_min", a[0].clone(), persistent=False)
+        self.register_buffer("aabb_size", (a[1] - a[0]).clone(), persistent=False)
+
+    def _run(self, mlp: nn.Sequential, x: Tensor) -> Tensor:
+        """Apply ``mlp`` rounding every activation to the storage dtype (GAP9 emulation)."""
+        for layer in mlp:
+            x = round_to(layer(x), self.dtype)
+        return x
+
+    def geometry(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Density and geometry features.
+
+        Args:
+            points: [N, 3] scene units (outside the AABB is clamped to its faces).
+
+        Returns:
+            sigma [N] density per scene unit (>= 0, finite), geo [N, geo_features].
+        """
+        unit = (points - self.aabb_min) / self.aabb_size
+        h = self._run(self.density_mlp, round_to(self.encoding(unit), self.dtype))
+        return trunc_exp(h[:, 0]), h
+
+    def density(self, points: Tensor) -> Tensor:
+        """Density [N] per scene unit at ``points`` [N, 3]."""
+        return self.geometry(points)[0]
+
+    def forward(self, points: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        """Colour and density.
+
+        Args:
+            points: [N, 3] scene units.
+            dirs: [N, 3] unit view directions.
+
+        Returns:
+            color [N, C] in (0, 1), sigma [N] per scene unit.
+        """
+        sigma, geo = self.geometry(points)
+        x = torch.cat([geo, round_to(sh_encode(dirs, self.sh_degree), self.dtype)], -1)
+        return torch.sigmoid(self._run(self.color_mlp, x)), sigma
+
+    def mlp_parameters(self) -> list[nn.Parameter]:
+        """The MLP weights (the ones that get L2 weight decay)."""
+        return [*self.density_mlp.parameters(), *self.color_mlp.parameters()]
+
+    def parameter_count(self) -> int:
+        """Trainable parameters (hash table + MLPs)."""
+        return sum(p.numel() for p in self.parameters())

@@ -1,0 +1,110 @@
+"""Ray marching through the occupancy grid into packed samples (pure PyTorch reference).
+
+Samples are packed: one flat list ordered by ray, with ``ray_indices`` naming each sample's ray.
+A ray's candidate samples sit at ``t_near + (k + offset) * step`` inside ``[t_near, t_far)``;
+those in empty cells are dropped. Only points inside the AABB are ever produced.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .occupancy import GridState, occupied_at
+
+
+@dataclass
+class Samples:
+    """Packed samples of ``n_rays`` rays (S samples in total, ordered by ray).
+
+    ray_indices: int64 [S]; t_starts, t_ends: float32 [S] (scene units along unit directions);
+    counts: int64 [n_rays] samples per ray.
+    """
+
+    ray_indices: Tensor
+    t_starts: Tensor
+    t_ends: Tensor
+    counts: Tensor
+
+    @property
+    def n(self) -> int:
+        """Total samples S."""
+        return int(self.ray_indices.numel())
+
+
+def march(
+    origins: Tensor,
+    dirs: Tensor,
+    t_near: Tensor,
+    t_far: Tensor,
+    step: float,
+    grid: GridState | None,
+    aabb: Tensor,
+    max_samples: int,
+    offsets: Tensor | None = None,
+    chunk: int = 1 << 21,
+) -> Samples:
+    """March rays and keep the samples in occupied cells.
+
+    Args:
+        origins, dirs: [R, 3] rays (unit directions, scene units).
+        t_near, t_far: [R] the ray's segment inside the AABB (t_far <= t_near: no samples).
+        step: marching step in scene units (> 0).
+        grid: occupancy state, or None to keep every sample.
+        aabb: [2, 3] bounds of the grid.
+        max_samples: at most this many candidates per ray.
+        offsets: [R] position of the first sample within its step, in [0, 1) (training
+            jitter); None puts samples at step midpoints (0.5).
+        chunk: candidates processed at once (bounds memory).
+
+    Returns:
+        :class:`Samples` with t_starts/t_ends clipped to [t_near, t_far].
+    """
+    if not step > 0:
+        raise ValueError(f"marching step must be positive, got {step}")
+    r = origins.shape[0]
+    dev = origins.device
+    length = (t_far - t_near).clamp_min(0.0)
+    n_cand = torch.ceil(length / step).clamp(0, max_samples).long()
+    off = torch.full((r,), 0.5, device=dev) if offsets is None else offsets
+    # a jittered first sample may fall past t_far: drop those candidates below
+    ray_ids, ts = [], []
+    ends = torch.cumsum(n_cand, 0)
+    total = int(ends[-1]) if r else 0
+    ray_all = torch.repeat_interleave(torch.arange(r, device=dev), n_cand)
+    first = ends - n_cand
+    for s in range(0, total, chunk):
+        ri = ray_all[s : s + chunk]
+        k = torch.arange(s, min(s + chunk, total), device=dev) - first[ri]
+        t = t_near[ri] + (k.float() + off[ri]) * step
+        keep = t < t_far[ri]
+        if grid is not None:
+            pts = origins[ri] + dirs[ri] * t.unsqueeze(-1)
+            keep &= occupied_at(grid, pts, aabb)
+        ray_ids.append(ri[keep])
+        ts.append(t[keep])
+    ray_indices = torch.cat(ray_ids) if ray_ids else torch.zeros(0, dtype=torch.long, device=dev)
+    t_mid = torch.cat(ts) if ts else torch.zeros(0, device=dev)
+    half = 0.5 * step
+    t_starts = torch.maximum(t_mid - half, t_near[ray_indices])
+    t_ends = torch.minimum(t_mid + half, t_far[ray_indices])
+    counts = torch.bincount(ray_indices, minlength=r)
+    return Samples(ray_indices, t_starts, t_ends, counts)
+
+
+def take_rays(samples: Samples, rays: Tensor) -> Samples:
+    """The samples of a prefix of rays: ``rays`` is a sorted int64 index [R'] into the rays,
+    renumbered 0..R'-1 in the result (used to cut a batch at B samples)."""
+    keep = torch.zeros(samples.counts.numel(), dtype=torch.bool, device=rays.device)
+    keep[rays] = True
+    mask = keep[samples.ray_indices]
+    new_id = torch.full_like(samples.counts, -1)
+    new_id[rays] = torch.arange(rays.numel(), device=rays.device)
+    return Samples(
+        new_id[samples.ray_indices[mask]],
+        samples.t_starts[mask],
+        samples.t_ends[mask],
+        samples.counts[rays],
+    )

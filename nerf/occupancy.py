@@ -1,0 +1,125 @@
+"""Occupancy grid over the scene AABB (Instant-NGP's density grid), as config + explicit state.
+
+The grid stores, per cell, an EMA of the optical thickness ``sigma * step`` seen at random
+points in the cell; a cell is occupied while that value exceeds
+``min(threshold, mean over cells)``. Updates follow Instant-NGP: every cell at every update
+during warm-up, then every ``every`` steps a quarter of the cells uniformly plus a quarter
+chosen among the occupied ones; the EMA keeps ``max(decay * old, new)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+DensityFn = Callable[[Tensor], Tensor]  # points [N, 3] -> sigma [N]
+
+
+@dataclass
+class GridConfig:
+    """Occupancy-grid settings (from TrainConfig's grid_* fields)."""
+
+    res: int = 128  # cells per axis
+    decay: float = 0.95  # EMA decay per update
+    threshold: float = 0.01  # optical-thickness threshold of an occupied cell
+    warmup: int = 256  # steps during which all cells are updated every step
+    every: int = 16  # steps between updates after warm-up
+    chunk: int = 1 << 16  # points per density evaluation
+
+
+@dataclass
+class GridState:
+    """density: float32 [R^3] EMA optical thickness; occupied: bool [R^3] (x-major index)."""
+
+    density: Tensor
+    occupied: Tensor
+
+
+def init_state(cfg: GridConfig, device: str | torch.device = "cpu") -> GridState:
+    """Fresh grid: zero density, every cell occupied (nothing is skipped before training)."""
+    n = cfg.res**3
+    return GridState(torch.zeros(n, device=device), torch.ones(n, dtype=torch.bool, device=device))
+
+
+def due(cfg: GridConfig, step: int) -> bool:
+    """Whether the grid is updated before optimizer step ``step`` (0-based).
+
+    As Instant-NGP: the interval grows as ``clamp(step // 16, 1, every)``, so the first 32
+    steps update every step and the interval reaches ``every`` after ``16 * every`` steps.
+    """
+    return step % min(max(step // 16, 1), max(cfg.every, 1)) == 0
+
+
+def cell_index(points: Tensor, aabb: Tensor, res: int) -> Tensor:
+    """Flat cell index [N] int64 of ``points`` [N, 3] (clamped into the grid)."""
+    rel = (points - aabb[0]) / (aabb[1] - aabb[0])
+    ijk = (rel * res).long().clamp_(0, res - 1)
+    return (ijk[:, 0] * res + ijk[:, 1]) * res + ijk[:, 2]
+
+
+def occupied_at(state: GridState, points: Tensor, aabb: Tensor) -> Tensor:
+    """bool [N]: whether each point [N, 3] lies in an occupied cell (outside: clamped)."""
+    res = round(state.occupied.numel() ** (1 / 3))
+    return state.occupied[cell_index(points, aabb, res)]
+
+
+def cell_points(cells: Tensor, res: int, aabb: Tensor, generator: torch.Generator) -> Tensor:
+    """A uniformly random point [N, 3] inside each flat cell index of ``cells`` [N]."""
+    ijk = torch.stack([cells // (res * res), (cells // res) % res, cells % res], -1).float()
+    jitter = torch.rand(ijk.shape, generator=generator, device=cells.device)
+    return aabb[0] + (ijk + jitter) / res * (aabb[1] - aabb[0])
+
+
+@torch.no_grad()
+def update(
+    cfg: GridConfig,
+    state: GridState,
+    step: int,
+    density_fn: DensityFn,
+    aabb: Tensor,
+    step_size: float,
+    generator: torch.Generator,
+) -> GridState:
+    """One grid update before optimizer step ``step``; returns the new state.
+
+    Before ``warmup`` steps every cell is sampled; later a quarter of the cells uniformly and
+    a quarter drawn among the occupied ones.
+
+    Args:
+        density_fn: points [N, 3] -> sigma [N] (scene units^-1).
+        aabb: [2, 3] bounds of the grid.
+        step_size: marching step (scene units); optical thickness = sigma * step_size.
+    """
+    n = cfg.res**3
+    dev = state.density.device
+    if step < cfg.warmup:
+        cells = torch.arange(n, device=dev)
+    else:
+        uniform = torch.randint(n, (n // 4,), generator=generator, device=dev)
+        occ = state.occupied.nonzero().squeeze(1)
+        pick = torch.randint(max(occ.numel(), 1), (n // 4,), generator=generator, device=dev)
+        cells = torch.cat([uniform, occ[pick] if occ.numel() else occ])
+    fresh = torch.zeros(n, device=dev)
+    for start in range(0, cells.numel(), cfg.chunk):
+        c = cells[start : start + cfg.chunk]
+        sigma = density_fn(cell_points(c, cfg.res, aabb, generator)).float()
+        fresh.scatter_reduce_(0, c, torch.nan_to_num(sigma * step_size), "amax")
+    density = torch.maximum(state.density * cfg.decay, fresh)
+    thresh = min(cfg.threshold, float(density.mean()))
+    return GridState(density, density > thresh)
+
+
+def to_numpy(state: GridState) -> dict:
+    """The state as numpy arrays {"density": float32 [R^3], "occupied": bool [R^3]}."""
+    return {"density": state.density.cpu().numpy(), "occupied": state.occupied.cpu().numpy()}
+
+
+def from_numpy(g: dict, device: str | torch.device = "cpu") -> GridState:
+    """Inverse of :func:`to_numpy`."""
+    return GridState(
+        torch.as_tensor(g["density"], dtype=torch.float32, device=device),
+        torch.as_tensor(g["occupied"], dtype=torch.bool, device=device),
+    )

@@ -1,0 +1,141 @@
+"""Trainer behaviour on a tiny analytic scene: accumulation, non-finite steps, checkpoints."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from dronecap.nerf.config import preset
+from dronecap.nerf.trainer import Trainer, TrainingDiverged
+
+
+def _cfg(**kw):
+    return preset("test").replace(**kw)
+
+
+def _grads(tr: Trainer) -> list[torch.Tensor]:
+    return [p.grad.clone() for p in tr.field.parameters()]
+
+
+def test_tile_accumulation_equals_full_batch(cube_rgb):
+    tr = Trainer(_cfg(batch_samples=2048, tile_samples=2048), cube_rgb, backend="torch")
+    tr.train(3, progress=False)  # leave the all-occupied start
+    batch = tr._march_batch()
+    assert batch[4].n > 600  # enough samples for several tiles
+    tr.optimizer.zero_grad()
+    full = tr.accumulate_gradients(*batch)
+    g_full = _grads(tr)
+    tr.cfg = dataclasses.replace(tr.cfg, tile_samples=128)
+    tr.optimizer.zero_grad()
+    tiled = tr.accumulate_gradients(*batch)
+    g_tiled = _grads(tr)
+    assert abs(full - tiled) < 1e-6 * max(1.0, abs(full))
+    for a, b in zip(g_full, g_tiled, strict=True):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-9)
+    assert any(g.abs().sum() > 0 for g in g_full)
+
+
+def test_step_count_batch_size_and_learning(cube_rgb):
+    tr = Trainer(_cfg(steps=80), cube_rgb)
+    logs = tr.train(80, progress=False)
+    assert tr.step == 80 and len(logs) == 80
+    assert all(log["samples"] <= 2048 for log in logs)
+    # the ray count adapts so that late steps use most of the sample budget
+    assert np.median([log["samples"] for log in logs[-20:]]) > 1024
+    assert np.mean([log["loss"] for log in logs[-10:]]) < 0.5 * np.mean(
+        [log["loss"] for log in logs[:5]]
+    )
+
+
+def test_transient_nan_is_skipped_and_persistent_nan_stops(cube_rgb):
+    tr = Trainer(_cfg(), cube_rgb)
+    tr.train(2, progress=False)
+    before = tr.model_weights()
+    draw = tr._draw_rays
+
+    def nan_target(n):
+        o, d, target, bg = draw(n)
+        return o, d, torch.full_like(target, float("nan")), bg
+
+    tr._draw_rays = nan_target
+    log = tr.train_step()
+    assert log["skipped"]
+    after = tr.model_weights()
+    assert all(np.array_equal(before[k], after[k]) for k in before)
+    with pytest.raises(TrainingDiverged, match="non-finite"):
+        tr.train(30, progress=False)
+    assert all(np.isfinite(v).all() for v in tr.model_weights().values())
+    tr._draw_rays = draw
+    assert not tr.train_step()["skipped"]  # recovers once the data is sane again
+
+
+def test_nan_weights_are_never_saved_or_loaded(cube_rgb, tmp_path):
+    tr = Trainer(_cfg(), cube_rgb)
+    w = tr.model_weights()
+    key = next(iter(w))
+    w[key][...] = np.nan
+    with pytest.raises(Exception, match="non-finite"):
+        tr.load_model_weights(w)
+    with torch.no_grad():
+        tr.field.encoding.table[0, 0] = float("nan")
+    with pytest.raises(TrainingDiverged):
+        tr.save(tmp_path / "ck.pt")
+    assert not (tmp_path / "ck.pt").exists()
+
+
+def test_checkpoint_resume_reproduces_uninterrupted_run(cube_rgb, tmp_path):
+    a = Trainer(_cfg(steps=30), cube_rgb)
+    a.train(30, progress=False)
+    b = Trainer(_cfg(steps=30), cube_rgb)
+    b.train(12, progress=False)
+    b.save(tmp_path / "ck.pt")
+    c = Trainer.load(tmp_path / "ck.pt", cube_rgb)
+    assert c.step == 12
+    c.train(18, progress=False)
+    wa, wc = a.model_weights(), c.model_weights()
+    for k in wa:
+        np.testing.assert_allclose(wa[k], wc[k], rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(a.grid_state()["occupied"], c.grid_state()["occupied"])
+
+
+def test_weights_and_grid_roundtrip(cube_rgb):
+    a = Trainer(_cfg(), cube_rgb)
+    a.train(5, progress=False)
+    b = Trainer(_cfg(seed=1), cube_rgb)
+    b.load_model_weights(a.model_weights())
+    b.load_grid_state(a.grid_state())
+    k = cube_rgb.intrinsics
+    np.testing.assert_allclose(
+        a.render(cube_rgb.poses[0], k), b.render(cube_rgb.poses[0], k), atol=1e-6
+    )
+    assert set(a.model_weights()) == {
+        "encoding.table",
+        *[
+            f"{m}.{i}.weight"
+            for m, n in (("density_mlp", 1), ("color_mlp", 2))
+            for i in range(0, 2 * n + 1, 2)
+        ],
+    }
+
+
+@pytest.mark.parametrize("precision", ["fp16", "bf16"])
+def test_low_precision_storage_trains_finite(cube_rgb, precision):
+    tr = Trainer(_cfg(precision=precision), cube_rgb)
+    logs = tr.train(20, progress=False)
+    assert not any(log["skipped"] for log in logs)
+    table = tr.field.encoding.table.detach()
+    dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}[precision]
+    assert torch.equal(table, table.to(dtype).float())  # stored values are representable
+    for p in tr.field.parameters():
+        assert torch.isfinite(p).all() and torch.isfinite(p.grad).all()
+
+
+def test_gray_head_has_one_channel(cube_gray_h5):
+    from dronecap.datasets.format import open_dataset
+
+    ds = open_dataset(cube_gray_h5)
+    tr = Trainer(_cfg(), ds)
+    tr.train(5, progress=False)
+    img = tr.render(ds.poses[0], ds.intrinsics)
+    assert img.shape == (24, 24, 1) and img.dtype == np.float32
+    assert tr.field.color_mlp[-1].out_features == 1
