@@ -7,7 +7,7 @@ accumulation), and a full step proxy (encoding, density MLP 32->64->16, colour M
 (reference vs C++) of one training batch. Medians of repeats after warm-up; prints a table and
 writes benchmarks/results/hashgrid_speed.md.
 
-    .venv/bin/python benchmarks/hashgrid_speed.py [--repeats 20] [--threads 2] [--skip-compile]
+    .venv/bin/python benchmarks/hashgrid_speed.py [--repeats 20] [--threads 1 2] [--skip-compile]
 """
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ def step_proxy_ms(grid: HashGrid, x: torch.Tensor, repeats: int, fused_adam: boo
     return median_ms(step, repeats)
 
 
-def march_rows(repeats: int) -> list[tuple[str, str]]:
+def march_rows(repeats: int) -> list[tuple[str, float]]:
     """Reference vs C++ marching of 1000 rays through a 128^3 grid with a ball occupied (ms)."""
     g = torch.Generator().manual_seed(0)
     aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -115,24 +115,18 @@ def march_rows(repeats: int) -> list[tuple[str, str]]:
     label = (
         f"march 1000 rays -> {n} samples (128^3 grid, {float(occupied.float().mean()):.1%} occ.)"
     )
-    return [(f"{label}, reference", f"{ref:.2f}"), (f"{label}, C++", f"{cpp:.2f}")]
+    return [(f"{label}, reference", ref), (f"{label}, C++", cpp)]
 
 
-def main() -> None:
-    """Run the measurements, print the table and write the results file."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    parser.add_argument("--skip-compile", action="store_true", help="leave out torch.compile")
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+def measure(args: argparse.Namespace) -> list[tuple[str, float]]:
+    """Every measurement of this benchmark at the current thread count: (name, ms) rows."""
     torch.manual_seed(0)
     x = torch.rand(N, 3)
-    rows: list[tuple[str, str]] = []
+    rows: list[tuple[str, float]] = []
 
     def add(name: str, ms: float) -> None:
-        rows.append((name, f"{ms:.2f}"))
-        print(f"{name:70s} {ms:9.2f} ms", flush=True)
+        rows.append((name, ms))
+        print(f"{torch.get_num_threads()} thr  {name:70s} {ms:9.2f} ms", flush=True)
 
     backends = ["torch", "cpp"] + ([] if args.skip_compile else ["compile"])
     for backend in backends:
@@ -162,21 +156,45 @@ def main() -> None:
             f"encoding fwd+bwd, {N} points, cpp, {dtype} storage",
             encoding_ms(grid, x, args.repeats, N),
         )
+    grid = HashGrid(**CONFIG, backend="cpp")
+    big = torch.rand(1 << 16, 3)
+    with torch.no_grad():
+        add("encoding forward only (no_grad), 65536 points, cpp", median_ms(lambda: grid(big), 10))
     for name, ms in march_rows(args.repeats):
-        add(name, float(ms))
-    load = os.getloadavg()[0]
-    table = "| measurement | median ms |\n|---|---:|\n" + "".join(
-        f"| {a} | {b} |\n" for a, b in rows
-    )
+        add(name, ms)
+    return rows
+
+
+def main() -> None:
+    """Run the measurements at each thread count, print the table and write the results file."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, torch.get_num_threads()])
+    parser.add_argument("--skip-compile", action="store_true", help="leave out torch.compile")
+    args = parser.parse_args()
+    columns = {}
+    loads = []
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        columns[threads] = dict(measure(args))
+        loads.append(os.getloadavg()[0])
+    names = list(next(iter(columns.values())))
+    head = "| measurement | " + " | ".join(f"{t} thread(s), ms" for t in columns) + " |\n"
+    table = head + "|---|" + "---:|" * len(columns) + "\n"
+    for name in names:
+        table += f"| {name} | " + " | ".join(f"{c[name]:.2f}" for c in columns.values()) + " |\n"
+    threads = " ".join(str(t) for t in args.threads)
     text = (
         "# Hash encoding and marching speed\n\n"
-        f"Encoding L=16 F=2 T=2^13 n_min=16 n_max=2048; torch {torch.__version__}, "
-        f"{args.threads} threads, {args.repeats} repeats after warm-up (median); machine load "
-        f"average {load:.1f} at the end of the run (the machine is shared: timings are noisy).\n"
+        f"Encoding L=16 F=2 T=2^13 n_min=16 n_max=2048; torch {torch.__version__}; medians of "
+        f"{args.repeats} repeats after warm-up. The machine (2 cores) was shared with other jobs: "
+        f"load average {', '.join(f'{v:.1f}' for v in loads)} after each column, so absolute "
+        "times are inflated (most for 2 threads, whose OpenMP regions stall when a core is "
+        "taken); compare rows within a column.\n"
         "Step proxy = encoding + density MLP 32->64->16 + colour MLP 31->64->64->3 (bias-free, "
         f"ReLU) + MSE + backward + Adam on {N} points.\n\n"
         f"Command: `.venv/bin/python benchmarks/hashgrid_speed.py --repeats {args.repeats} "
-        f"--threads {args.threads}{' --skip-compile' if args.skip_compile else ''}`\n\n" + table
+        f"--threads {threads}{' --skip-compile' if args.skip_compile else ''}`\n\n" + table
     )
     print(table)
     out = REPO / "benchmarks" / "results" / "hashgrid_speed.md"

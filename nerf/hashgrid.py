@@ -303,5 +303,5 @@ def _compiled_reference():
     """``torch.compile`` of :func:`hash_encode_reference` (built once per process)."""
     global _COMPILED
     if _COMPILED is None:
-        _COMPILED = torch.compile(hash_encode_reference, dynamic=False)
+        _COMPILED = torch.compile(hash_encode_reference)  # dynamic N after the first recompile
     return _COMPILED
