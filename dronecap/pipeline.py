@@ -24,7 +24,7 @@ from typing import Any
 
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, sha256_file
-from dronecap.pipeline_spec import Pipeline, Stage, substitute
+from dronecap.pipeline_spec import Pipeline, Stage, param_actions, substitute
 
 STAMP = ".dronecap-stage.json"
 
@@ -42,7 +42,7 @@ class StageResult:
 
 def stage_argv(stage: Stage, parser: argparse.ArgumentParser, params: dict[str, Any]) -> list[str]:
     """The command line (after the command name) that runs ``stage`` with resolved ``params``."""
-    actions = {a.dest: a for a in parser._actions}
+    actions = param_actions(parser)
     positional: list[tuple[int, list[str]]] = []
     options: list[str] = []
     order = [a.dest for a in parser._actions if not a.option_strings]
@@ -50,7 +50,7 @@ def stage_argv(stage: Stage, parser: argparse.ArgumentParser, params: dict[str, 
         action = actions[key]
         values = [str(v) for v in (value if isinstance(value, list) else [value])]
         if not action.option_strings:
-            positional.append((order.index(key), values))
+            positional.append((order.index(action.dest), values))
             continue
         flag = max(action.option_strings, key=len)
         if isinstance(action, argparse._StoreTrueAction):

@@ -201,8 +201,21 @@ def build_pipeline(
     return Pipeline(name, stages, vars_, str(spec.get("description", "")))
 
 
+def param_actions(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
+    """The parameters a stage may set: each action by its long option name (``--local-steps``
+    -> ``local_steps``), or by its dest for positionals; ``--help``/``--workdir`` excluded."""
+    table: dict[str, argparse.Action] = {}
+    for a in parser._actions:
+        if a.dest in ("help", "workdir"):
+            continue
+        longs = [o for o in a.option_strings if o.startswith("--")]
+        name = max(longs, key=len)[2:] if longs else a.dest
+        table[name.replace("-", "_")] = a
+    return table
+
+
 def _check_params(stage: Stage, parser: argparse.ArgumentParser, path: str | Path) -> None:
-    actions = {a.dest: a for a in parser._actions if a.dest not in ("help", "workdir")}
+    actions = param_actions(parser)
     for key, value in stage.params.items():
         line = stage.param_lines.get(key, stage.line)
         if key not in actions:
