@@ -75,12 +75,14 @@ class Framing:
             self.size[1],
         )
 
-    def apply(self, gray: np.ndarray) -> np.ndarray:
-        """Crop and resize one gray frame: uint8 [H_src, W_src] -> uint8 [h, w] (INTER_AREA)."""
+    def apply(self, frame: np.ndarray) -> np.ndarray:
+        """Crop, convert to gray and resize one decoded frame (uint8/uint16 [H_src, W_src] or
+        [H_src, W_src, 3|4] BGR(A)) -> uint8 [h, w]. Cropping first converts fewer pixels; gray
+        and the area average are both linear, so the order does not change the result."""
         import cv2
 
         x0, y0, w, h = self.box
-        crop = gray[y0 : y0 + h, x0 : x0 + w]
+        crop = to_gray(frame[y0 : y0 + h, x0 : x0 + w])
         if (w, h) == self.size:
             return np.ascontiguousarray(crop)
         # INTER_AREA averages when shrinking; when enlarging OpenCV falls back to bilinear.

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from dronecap.capture.calibration import load_intrinsics
 from dronecap.capture.decode import DecodedFrame, SourceInfo, open_source, prefetch, progress_stream
-from dronecap.capture.framing import LUMA_WEIGHTS, CameraModel, Framing, make_framing, to_gray
+from dronecap.capture.framing import LUMA_WEIGHTS, CameraModel, Framing, make_framing
 from dronecap.capture.quality import SCORE_NAMES, MotionTracker, frame_scores
 from dronecap.capture.selection import (
     REASONS,
@@ -167,7 +167,7 @@ def _decode_and_score(
 
     def convert() -> Iterator[tuple[DecodedFrame, np.ndarray | None]]:
         for f in frames:
-            yield f, None if f.image is None else framing.apply(to_gray(f.image))
+            yield f, None if f.image is None else framing.apply(f.image)
 
     blank = np.zeros((framing.size[1], framing.size[0]), np.uint8)
     tracker = MotionTracker()
