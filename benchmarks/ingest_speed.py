@@ -147,8 +147,10 @@ def sfm_tradeoff(targets: list[int], frames: int) -> list[tuple[int, str]]:
                 capture_output=True,
                 text=True,
             )
-            lines = (r.stdout + r.stderr).strip().splitlines()
-            summary = " / ".join(lines[-3:]) if lines else f"exit {r.returncode}"
+            text = (r.stdout + r.stderr).replace("\r", "\n").splitlines()
+            keys = ("frames registered", "vs ground truth", "error:")
+            picked = [ln.strip() for ln in text if any(k in ln for k in keys)]
+            summary = " / ".join(picked) if picked else f"exit {r.returncode}"
             rows.append((n, f"{time.perf_counter() - t0:.0f} s: {summary}"))
     return rows
 
