@@ -15,6 +15,8 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -81,6 +83,13 @@ def run_isolated(
     raise ChildCrash(f"the COLMAP process died ({how}); its log is {log_file}")
 
 
+def _exit_with_parent(parent: int) -> None:
+    """Child side: end this process as soon as the parent is gone (killed, crashed)."""
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(1)
+
+
 def _child_main() -> None:
     """Child side: read the request from stdin, send events and the result as JSON lines."""
     request = json.loads(sys.stdin.read())
@@ -89,6 +98,7 @@ def _child_main() -> None:
     os.dup2(fd, 1)
     os.dup2(fd, 2)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C does
+    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
 
     def send(kind: str, payload: Any) -> None:
         channel.write(json.dumps([kind, payload]) + "\n")

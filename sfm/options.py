@@ -27,12 +27,15 @@ class SfmOptions:
     loop_detection: bool = True  # sequential: add pairs retrieved by a visual index of the flight
     loop_period: int = 5  # query the visual index with every this-many-th frame
     loop_num_images: int = 15  # frames retrieved per query
-    visual_words: int = 1024  # size of the flight's own visual vocabulary (upper bound)
+    visual_words: int = 512  # size of the flight's own visual vocabulary (upper bound)
+    max_epipolar_error: float = 4.0  # RANSAC threshold of two-view verification, pixels
+    max_h_inlier_ratio: float = 0.8  # pairs whose homography explains more are called planar
     # --- mapping ---
     min_num_matches: int = 15  # verified matches for a pair to count in mapping
     init_min_num_inliers: int = 50  # initial pair; COLMAP relaxes this itself if it fails
     abs_pose_min_num_inliers: int = 15  # 2D-3D inliers needed to register a frame
     max_models: int = 10  # COLMAP keeps starting new models up to this many
+    init_trials: int = 1  # 2: also map from an early initial pair, keep the better model
     extend: bool = True  # resume mapping from the largest model to absorb the others
     seed: int = 0  # random seed of the mapper (deterministic runs)
     num_threads: int = -1  # -1: all cores

@@ -92,6 +92,7 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         "dropped": dropped,
         "dropped_runs": dropped_runs(missing, n),
         "models": summary.get("models", {}),
+        "chosen_model": summary["best"] and str(Path(summary["best"]).relative_to(res.work)),
         "matching": match_info,
         "keypoints_per_frame_median": float(np.median(list(keypoints.values())))
         if keypoints

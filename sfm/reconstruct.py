@@ -19,7 +19,13 @@ from typing import Any
 
 import numpy as np
 from dronecap.datasets.format import Intrinsics
-from dronecap.sfm.colmap_steps import MIN_KEYPOINTS, extract, incremental_map, match
+from dronecap.sfm.colmap_steps import (
+    MIN_KEYPOINTS,
+    early_init_pair,
+    extract,
+    incremental_map,
+    match,
+)
 from dronecap.sfm.isolate import run_isolated
 from dronecap.sfm.options import SfmOptions
 
@@ -88,36 +94,40 @@ def colmap_job(
         out["stopped"] = "no pair of frames could be matched with a consistent geometry"
         return out
 
+    def on_register(k: int) -> None:
+        emit(("registered", k))
+
+    known = camera is not None
     t = phase("map")
-    sizes = incremental_map(
-        db, images, root / "models", opts, camera is not None, lambda k: emit(("registered", k))
-    )
+    found = incremental_map(db, images, root / "models", opts, known, on_register)
     times["map"] = time.perf_counter() - t
-    out["models"] = {str(k): v for k, v in sizes.items()}
-    if not sizes:
+    pair = early_init_pair(db) if opts.init_trials > 1 else None
+    if pair is not None:
+        t = phase("map (2nd start)")
+        alt = incremental_map(db, images, root / "models_alt", opts, known, on_register, None, pair)
+        times["map_2nd_start"] = time.perf_counter() - t
+        found.update(alt)
+    out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
+    if not found:
         out["stopped"] = (
             "the mapper found no initial pair with enough inliers and baseline"
             " (a camera turning in place or hovering gives no baseline)"
         )
         return out
-    best = max(sizes, key=lambda k: sizes[k])
-    out["best"] = str(root / "models" / str(best))
-    out["best_size_before_extend"] = sizes[best]
-    if opts.extend and sizes[best] < len(usable):
-        t = phase("extend", sizes[best])
+    # most frames first; among equals, the lower reprojection error (the better basin)
+    best = max(found, key=lambda k: (found[k]["frames"], -found[k]["reproj"]))
+    out["best"] = best
+    size = found[best]["frames"]
+    if opts.extend and size < len(usable):
+        t = phase("extend", size)
         ext = incremental_map(
-            db,
-            images,
-            root / "extended",
-            opts,
-            camera is not None,
-            lambda k: emit(("registered", k)),
-            input_path=root / "models" / str(best),
+            db, images, root / "extended", opts, known, on_register, input_path=Path(best)
         )
         times["extend"] = time.perf_counter() - t
-        if ext and max(ext.values()) > sizes[best]:
-            k = max(ext, key=lambda j: ext[j])
-            out["best"] = str(root / "extended" / str(k))
+        if ext:
+            k = max(ext, key=lambda j: ext[j]["frames"])
+            if ext[k]["frames"] > size:
+                out["best"] = k
     return out
 
 
@@ -125,6 +135,7 @@ def colmap_job(
 class ColmapResult:
     """What came back from COLMAP for one flight."""
 
+    work: Path  # the work folder (database, images, models, log)
     names: list[str]  # work-folder name of each input frame, in flight order
     summary: dict[str, Any]  # colmap_job's summary
     reconstruction: Any = None  # pycolmap.Reconstruction of the chosen model, or None
@@ -179,4 +190,4 @@ def reconstruct(
         bar.close()
     times.update(summary["times"])
     rec = None if summary["best"] is None else pycolmap.Reconstruction(summary["best"])
-    return ColmapResult(names=names, summary=summary, reconstruction=rec, times=times)
+    return ColmapResult(work=work, names=names, summary=summary, reconstruction=rec, times=times)

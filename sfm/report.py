@@ -79,7 +79,9 @@ def format_report(report: dict[str, Any]) -> str:
         )
     models = report.get("models")
     if models:
-        lines.append(f"  models found (frames each): {models}; kept the largest")
+        found = ", ".join(f"{k} {v['frames']} ({v['reproj']:.2f} px)" for k, v in models.items())
+        lines.append(f"  models (frames, reprojection error): {found}")
+        lines.append(f"  kept: {report.get('chosen_model')}")
     for r in report.get("dropped_runs", [])[:10]:
         span = f"{r['first']}" if r["count"] == 1 else f"{r['first']}-{r['last']}"
         lines.append(f"  dropped frames {span} ({r['count']}) at the {r['where']}")
