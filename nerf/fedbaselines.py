@@ -67,20 +67,24 @@ def marks(s: FedSettings) -> list[int]:
     return [s.pretrain + r * s.local_steps for r in range(s.rounds + 1)]
 
 
-def run_baseline(run_dir: Path, s: FedSettings, name: str, train: Dataset) -> list[dict]:
+def run_baseline(
+    run_dir: Path, s: FedSettings, name: str, train: Dataset, curve_marks: bool = True
+) -> list[dict]:
     """Train (or resume) one baseline to the full budget; returns its curve.
 
-    The curve is a list of ``{"steps", "psnr", "ssim"}``, one per mark, stored in
-    ``rounds.json["baselines"][name]`` after every mark.
+    The curve is a list of ``{"steps", "psnr", "ssim"}``, one per mark (only the last one
+    without ``curve_marks``), stored in ``rounds.json["baselines"][name]`` after every mark.
     """
     from dronecap.nerf.trainer import Trainer
 
     ckpt = Path(run_dir) / "baselines" / f"{name}.pt"
     curve = _curves(run_dir).get(name, [])
-    trainer = Trainer.load(ckpt, train=train) if curve else Trainer(s.train_config(), train)
+    fresh = not curve or not ckpt.exists()
+    trainer = Trainer(s.train_config(), train) if fresh else Trainer.load(ckpt, train=train)
     test = test_split(s.shards[0], s.eval_views)
-    for m in marks(s)[len(curve) :]:
-        trainer.train(m - trainer.step, progress=False)
+    last = curve[-1]["steps"] if curve else -1
+    for m in [m for m in (marks(s) if curve_marks else marks(s)[-1:]) if m > last]:
+        trainer.train(max(m - trainer.step, 0), progress=False)
         with atomic_output(ckpt) as tmp:
             trainer.save(tmp)
         metrics = trainer.evaluate(test)
@@ -91,10 +95,10 @@ def run_baseline(run_dir: Path, s: FedSettings, name: str, train: Dataset) -> li
     return curve
 
 
-def run_baselines(run_dir: Path, s: FedSettings, names: list[str] | None = None) -> dict:
-    """Run the named baselines (default: all); returns name -> curve."""
+def run_baselines(run_dir: Path, s: FedSettings, curve_marks: bool = True) -> dict:
+    """Run every baseline (centralized, then each drone alone); returns name -> curve."""
     sets = baseline_trainsets(s)
-    return {n: run_baseline(run_dir, s, n, sets[n]) for n in (names or list(sets))}
+    return {n: run_baseline(run_dir, s, n, ds, curve_marks) for n, ds in sets.items()}
 
 
 def _curves(run_dir: Path) -> dict[str, list[dict]]:

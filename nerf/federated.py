@@ -434,6 +434,72 @@ def save_rounds(run_dir: Path, s: FedSettings, history: list[dict], **extra: Any
 # ----------------------------------------------------------------------------------------------
 
 
+APP_TOML = """\
+[build-system]
+requires = ["hatchling"]
+build-backend = "hatchling.build"
+
+[project]
+name = "dronecap-federate"
+version = "1.0.0"
+description = "Tiny-DroNeRF FedAvg (the apps live in the installed dronecap package)"
+license = "Apache-2.0"
+dependencies = []
+
+[tool.flwr.app]
+publisher = "dronecap"
+
+[tool.flwr.app.components]
+serverapp = "dronecap.nerf.federated:serverapp"
+clientapp = "dronecap.nerf.federated:clientapp"
+
+[tool.flwr.app.config]
+run-dir = ""
+"""
+
+FLWR_CONFIG = """\
+[superlink]
+default = "dronecap"
+
+[superlink.dronecap]
+address = "{address}"
+insecure = true
+"""
+
+
+def write_deployment(run_dir: Path, host: str = "127.0.0.1", port: int = 8000) -> list[str]:
+    """Prepare ``run_dir`` for deployment mode; returns the shell commands that run it.
+
+    Writes the Flower app (``RUN/flwr_app/pyproject.toml``, pointing at this module's
+    ``serverapp``/``clientapp``) and a Flower config naming the SuperLink
+    (``RUN/flwr_home/config.toml``, used through ``FLWR_HOME``). The commands start one
+    SuperLink, one SuperNode per drone (``partition-id`` K, runtime port 9094 + K) and
+    submit the run with ``flwr run``; each long-running one ends with ``&``.
+    """
+    run_dir = Path(run_dir).resolve()
+    s = load_settings(run_dir)
+    app, home = run_dir / "flwr_app", run_dir / "flwr_home"
+    for path, text in (
+        (app / "pyproject.toml", APP_TOML),
+        (home / "config.toml", FLWR_CONFIG.format(address=f"{host}:{port}")),
+    ):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_output(path) as tmp:
+            tmp.write_text(text)
+    cmds = [
+        f"export FLWR_HOME={home}",
+        f"flower-superlink --insecure --disable-runtime-dependency-installation "
+        f"--host {host} --port {port} &",
+    ]
+    cmds += [
+        f"flower-supernode --insecure --superlink {host}:{port} --host {host} "
+        f"--port {9094 + k} --node-config 'partition-id={k} num-partitions={s.n_clients}' &"
+        for k in range(s.n_clients)
+    ]
+    cmds.append(f"flwr run {app} --run-config \"run-dir='{run_dir}'\" --stream")
+    return cmds
+
+
 @dataclass
 class SimulationResources:
     """Ray's footprint: CPUs per drone and for the whole run (no dashboard)."""

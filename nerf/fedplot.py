@@ -35,7 +35,7 @@ def plot_runs(panels: dict[str, dict], path: str | Path) -> Path:
             ax.plot(
                 [c["steps"] for c in curve],
                 [c["psnr"] for c in curve],
-                "--" if central else ":",
+                "s--" if central else "o:",
                 lw=1.5 if central else 1.0,
                 color="tab:red" if central else None,
                 label=name.replace("_", " ") + (" (upper bound)" if central else " alone"),

@@ -41,6 +41,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="fault injection: this drone raises in --fail-round (left out of that average)",
     )
     p.add_argument("--fail-round", type=int, default=-1)
+    p.add_argument(
+        "--deployment",
+        action="store_true",
+        help="do not simulate: prepare --out for deployment mode (a SuperLink and one SuperNode "
+        "per drone) and print the commands that run it",
+    )
+    p.add_argument("--superlink-port", type=int, default=8000, help="with --deployment")
     p.add_argument("--restart", action="store_true", help="discard an existing run in --out")
     p.add_argument("--out", help="run folder (default: runs/federate in the workspace)")
 
@@ -91,10 +98,16 @@ def run(args: argparse.Namespace) -> int:
             out,
         )
     fed.save_settings(out, s)
-    done = len(fed.load_rounds(out))
-    if done:
-        print(f"resuming after round {done - 1} of {s.rounds}")
-    rounds = fed.run_simulated(out)
+    if args.deployment:
+        cmds = fed.write_deployment(out, port=args.superlink_port)
+        print("deployment mode: run these (then this command again, for --baselines and the plot):")
+        print("\n".join(cmds))
+        return 0
+    rounds = fed.load_rounds(out)
+    if rounds and rounds[-1]["round"] < s.rounds:
+        print(f"resuming after round {rounds[-1]['round']} of {s.rounds}")
+    if not rounds or rounds[-1]["round"] < s.rounds:
+        rounds = fed.run_simulated(out)
     if not rounds or rounds[-1]["round"] != s.rounds:
         raise InputError(f"the federation stopped after {len(rounds)} rounds; see the log", out)
     if args.baselines:

@@ -135,3 +135,45 @@ def test_cli_interrupted_run_resumes_from_last_round(lego_h5, tmp_path):
     proc = _federate([*args[:-2], "--rounds", "4", "--out", str(out)])
     text = proc.communicate(timeout=300)[0]
     assert proc.returncode == 1 and "--restart" in text
+
+
+@pytest.mark.slow
+@pytest.mark.data
+def test_deployment_superlink_and_supernodes_on_loopback(lego_shards, tmp_path):
+    """The same apps with real SuperLink/SuperNode processes (the commands of --deployment)."""
+    from dronecap.nerf.federated import FedSettings, load_rounds, save_settings, write_deployment
+
+    run = tmp_path / "run"
+    save_settings(
+        run, FedSettings(shards=lego_shards, cfg=dataclasses.asdict(preset("test")), **SMALL)
+    )
+    cmds = write_deployment(run, port=18731)
+    env = dict(os.environ, FLWR_HOME=cmds[0].split("=", 1)[1])
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env['PATH']}"
+    procs = []
+    try:
+        for cmd in cmds[1:-1]:  # the SuperLink, then one SuperNode per drone
+            procs.append(
+                subprocess.Popen(
+                    "exec " + cmd.rstrip(" &"),  # the Popen pid is the Flower process
+                    shell=True,
+                    env=env,
+                    start_new_session=True,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+            time.sleep(5 if len(procs) == 1 else 1)
+        done = subprocess.run(
+            cmds[-1], shell=True, env=env, capture_output=True, text=True, timeout=900
+        )
+        assert done.returncode == 0, done.stdout + done.stderr
+    finally:
+        for p in procs:
+            os.killpg(p.pid, signal.SIGTERM)
+        for p in procs:
+            p.wait(timeout=60)
+    rounds = load_rounds(run)
+    assert [r["round"] for r in rounds] == [0, 1, 2]
+    assert rounds[-1]["participants"] == 2
+    assert (run / "checkpoint.pt").exists()
