@@ -18,6 +18,8 @@ import numpy as np
 
 from dronecap.errors import InputError
 
+WEAK_ALIGNMENT = 3.0  # warn when ATE RMSE > (RMS sideways spread of the centres) / this
+
 
 class DegenerateAlignment(InputError):
     """The camera centres do not determine a similarity (too few, coincident or collinear)."""
@@ -108,8 +110,9 @@ class PoseAccuracy:
     rot_median_deg: float  # median camera rotation error after alignment, degrees
     rot_max_deg: float
     scale: float  # similarity scale recovered -> ground truth
+    warning: str = ""  # set when the position errors rival the trajectory's sideways spread
 
-    def to_dict(self) -> dict[str, float | int]:
+    def to_dict(self) -> dict[str, float | int | str]:
         """JSON-able record."""
         return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
@@ -144,6 +147,14 @@ def pose_accuracy(
     rot = rotation_angle_deg(rel)
     rmse = float(np.sqrt((err**2).mean()))
     total = len(est) if total_gt is None else total_gt
+    centred = gt[:, :3, 3] - gt[:, :3, 3].mean(0)
+    side = float(np.linalg.svd(centred, compute_uv=False)[1] / np.sqrt(len(gt)))
+    warning = ""
+    if rmse > side / WEAK_ALIGNMENT:
+        warning = (
+            f"ATE {rmse:.3g} is over 1/{WEAK_ALIGNMENT:g} of the trajectory's sideways spread "
+            f"{side:.3g}: the alignment rotation (and so the rotation errors) is weakly determined"
+        )
     return PoseAccuracy(
         matched=len(est),
         total_gt=total,
@@ -155,6 +166,7 @@ def pose_accuracy(
         rot_median_deg=float(np.median(rot)),
         rot_max_deg=float(rot.max()),
         scale=sim.scale,
+        warning=warning,
     )
 
 

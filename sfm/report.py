@@ -100,6 +100,8 @@ def format_report(report: dict[str, Any]) -> str:
             f"{acc['extent']:.3f}), rotation error median {acc['rot_median_deg']:.3f} deg, max "
             f"{acc['rot_max_deg']:.3f} deg, registered {100 * acc['registration_rate']:.1f}%"
         )
+        if acc.get("warning"):
+            lines.append(f"  warning: {acc['warning']}")
     t = report.get("times", {})
     if t:
         lines.append("  time: " + ", ".join(f"{k} {v:.1f}s" for k, v in t.items()))

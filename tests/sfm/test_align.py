@@ -102,6 +102,19 @@ def test_pose_accuracy_reports_a_rotated_camera_and_a_shifted_centre():
     assert acc.ate_percent == pytest.approx(100 * acc.ate_rmse / np.sqrt(32.0))
 
 
+def test_pose_accuracy_warns_when_errors_rival_the_sideways_spread():
+    # a long thin flight: 10 m along x, +-0.05 m sideways (RMS sideways spread 0.05 / sqrt(2))
+    n = 20
+    centres = np.column_stack([np.linspace(0, 10, n), 0.05 * (-1.0) ** np.arange(n), np.zeros(n)])
+    centres[::3, 2] += 0.04
+    gt = poses_at(centres)
+    assert pose_accuracy(gt, gt).warning == ""
+    noisy = gt.copy()
+    noisy[:, :3, 3] += 0.1 * np.random.default_rng(1).normal(size=(n, 3))  # errors ~0.1 m
+    acc = pose_accuracy(noisy, gt)
+    assert "weakly determined" in acc.warning
+
+
 def test_rotation_angle_deg_by_hand():
     assert rotation_angle_deg(np.stack([np.eye(3), rot_z(30), rot_x(-120)])) == pytest.approx(
         [0.0, 30.0, 120.0]

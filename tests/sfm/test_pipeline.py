@@ -176,3 +176,25 @@ def test_pure_rotation_does_not_crash(lego_dir, tmp_path):
     whole = {"first": 0, "last": 11, "count": 12, "where": "whole flight"}
     assert report["dropped_runs"] == [whole]
     assert not (tmp_path / "posed.h5").exists()
+
+
+@pytest.mark.slow
+def test_lego_orbit_through_ingest(lego_dir, tmp_path):
+    """80 lego views as an image folder -> `dronecap ingest` -> `dronecap sfm --gt`."""
+    import cv2
+
+    ds, gt = blender_flight(lego_dir, count=80)
+    folder = tmp_path / "orbit"
+    folder.mkdir()
+    for i, im in enumerate(ds.images):
+        cv2.imwrite(str(folder / f"{i:04d}.png"), im[..., 0])
+    (tmp_path / "poses.json").write_text(json.dumps(gt))
+    k = ds.intrinsics
+    intr = f"{k.fx},{k.fy},{k.cx},{k.cy}"
+    work = ["--workdir", str(tmp_path)]
+    assert cli_main(["ingest", str(folder), "--intrinsics", intr, *work]) == 0
+    code = cli_main(["sfm", "--gt", str(tmp_path / "poses.json"), "--quiet", *work])
+    assert code == 0
+    report = json.loads((tmp_path / "sfm" / "report.json").read_text())
+    assert report["accuracy"]["registration_rate"] >= 0.9
+    assert report["accuracy"]["ate_percent"] <= 2.0
