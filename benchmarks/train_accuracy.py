@@ -63,8 +63,10 @@ def run(args: argparse.Namespace) -> None:
         if mark != cfg.steps:
             ev = tr.evaluate(ds, curve_views)
             curve.append({"step": tr.step, "seconds": tr.train_seconds, "psnr": ev["psnr"]})
+            _write(args.name, {"name": args.name, "finished": False, "curve": curve})
             print(
-                f"{args.name}: step {tr.step} {tr.train_seconds:.0f}s psnr(subset) {ev['psnr']:.2f}",
+                f"{args.name}: step {tr.step} {tr.train_seconds:.0f}s"
+                f" psnr(subset) {ev['psnr']:.2f}",
                 flush=True,
             )
     full = tr.evaluate(ds)
@@ -96,13 +98,18 @@ def run(args: argparse.Namespace) -> None:
         "load_average": os.getloadavg()[0],
         "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
     }
-    RUNS.mkdir(parents=True, exist_ok=True)
-    (RUNS / f"{args.name}.json").write_text(json.dumps(out, indent=1, default=list) + "\n")
+    _write(args.name, out | {"finished": True})
     print(
         f"{args.name}: PSNR {full['psnr']:.2f} SSIM {full['ssim']:.3f} over {full['views']} "
         f"views, {tr.train_seconds:.0f} s, {np.median(ms):.1f} ms/step",
         flush=True,
     )
+
+
+def _write(name: str, obj: dict) -> None:
+    """Write one run's JSON (partial while training, complete at the end)."""
+    RUNS.mkdir(parents=True, exist_ok=True)
+    (RUNS / f"{name}.json").write_text(json.dumps(obj, indent=1, default=list) + "\n")
 
 
 def memory_mb(cfg_dict: dict) -> float | None:
@@ -127,6 +134,8 @@ def report(args: argparse.Namespace) -> None:
     import matplotlib.pyplot as plt
 
     runs = [json.loads(p.read_text()) for p in sorted(RUNS.glob("*.json"))]
+    unfinished = [r["name"] for r in runs if not r.get("finished", True)]
+    runs = [r for r in runs if r.get("finished", True)]
     groups: dict[str, list[dict]] = {}
     for r in runs:
         key = r["name"].rsplit("-s", 1)[0]
@@ -161,6 +170,11 @@ def report(args: argparse.Namespace) -> None:
             f"{np.mean([r['render_seconds'] for r in rs]):.2f} | {r0['parameters']} | "
             f"{r0['n_max']} | {np.mean([r['load_average'] for r in rs]):.1f} |"
         )
+    if unfinished:
+        lines += [
+            "",
+            f"Runs that had not finished when this table was made: {', '.join(unfinished)}.",
+        ]
     text = "\n".join(lines) + "\n"
     print(text)
     (RESULTS / "train_accuracy.md").write_text(text)

@@ -10,7 +10,8 @@ from dronecap.nerf.trainer import Trainer, TrainingDiverged
 
 
 def _cfg(**kw):
-    return preset("test").replace(**kw)
+    """The test preset, made smaller still (1024-sample batches, 16^3 grid)."""
+    return preset("test").replace(**({"batch_samples": 1024, "grid_res": 16} | kw))
 
 
 def _grads(tr: Trainer) -> list[torch.Tensor]:
@@ -18,7 +19,7 @@ def _grads(tr: Trainer) -> list[torch.Tensor]:
 
 
 def test_tile_accumulation_equals_full_batch(cube_rgb):
-    tr = Trainer(_cfg(batch_samples=2048, tile_samples=2048), cube_rgb, backend="torch")
+    tr = Trainer(_cfg(batch_samples=2048, tile_samples=2048), cube_rgb)
     tr.train(3, progress=False)  # leave the all-occupied start
     batch = tr._march_batch()
     assert batch[4].n > 600  # enough samples for several tiles
@@ -36,15 +37,14 @@ def test_tile_accumulation_equals_full_batch(cube_rgb):
 
 
 def test_step_count_batch_size_and_learning(cube_rgb):
-    tr = Trainer(_cfg(steps=80), cube_rgb)
-    logs = tr.train(80, progress=False)
-    assert tr.step == 80 and len(logs) == 80
-    assert all(log["samples"] <= 2048 for log in logs)
+    tr = Trainer(_cfg(steps=50, lr_schedule="constant"), cube_rgb)
+    logs = tr.train(50, progress=False)
+    assert tr.step == 50 and len(logs) == 50
+    assert all(log["samples"] <= 1024 for log in logs)
     # the ray count adapts so that late steps use most of the sample budget
-    assert np.median([log["samples"] for log in logs[-20:]]) > 1024
-    assert np.mean([log["loss"] for log in logs[-10:]]) < 0.5 * np.mean(
-        [log["loss"] for log in logs[:5]]
-    )
+    assert np.median([log["samples"] for log in logs[-20:]]) > 512
+    first, last = (np.mean([log["loss"] for log in part]) for part in (logs[:10], logs[-10:]))
+    assert last < 0.7 * first, (first, last)
 
 
 def test_transient_nan_is_skipped_and_persistent_nan_stops(cube_rgb):
@@ -84,14 +84,14 @@ def test_nan_weights_are_never_saved_or_loaded(cube_rgb, tmp_path):
 
 
 def test_checkpoint_resume_reproduces_uninterrupted_run(cube_rgb, tmp_path):
-    a = Trainer(_cfg(steps=30), cube_rgb)
-    a.train(30, progress=False)
-    b = Trainer(_cfg(steps=30), cube_rgb)
-    b.train(12, progress=False)
+    a = Trainer(_cfg(steps=20), cube_rgb)
+    a.train(20, progress=False)
+    b = Trainer(_cfg(steps=20), cube_rgb)
+    b.train(8, progress=False)
     b.save(tmp_path / "ck.pt")
     c = Trainer.load(tmp_path / "ck.pt", cube_rgb)
-    assert c.step == 12
-    c.train(18, progress=False)
+    assert c.step == 8
+    c.train(12, progress=False)
     wa, wc = a.model_weights(), c.model_weights()
     for k in wa:
         np.testing.assert_allclose(wa[k], wc[k], rtol=1e-5, atol=1e-7)
@@ -121,7 +121,7 @@ def test_weights_and_grid_roundtrip(cube_rgb):
 @pytest.mark.parametrize("precision", ["fp16", "bf16"])
 def test_low_precision_storage_trains_finite(cube_rgb, precision):
     tr = Trainer(_cfg(precision=precision), cube_rgb)
-    logs = tr.train(20, progress=False)
+    logs = tr.train(8, progress=False)
     assert not any(log["skipped"] for log in logs)
     table = tr.field.encoding.table.detach()
     dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}[precision]

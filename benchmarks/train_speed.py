@@ -1,0 +1,116 @@
+"""Trainer speed on lego 160 px: a full tiny-dronerf training step and one 160x160 render.
+
+A "full step" is everything `Trainer.train_step` does: drawing rays, marching, the occupancy
+grid update when due (amortised: steps are timed over a window that includes the steady
+every-16-steps updates), forward/backward over the tiles, and Adam. The model is first trained
+for --warm steps so that the grid, the samples per ray and the renders are representative.
+Variants: thread counts, accumulation tiles of 1024 (as on GAP9) vs one 8192-sample tile,
+the C++ kernels vs the PyTorch reference. Medians of --repeats windows.
+
+    .venv/bin/python benchmarks/train_speed.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
+LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
+
+
+def main() -> None:
+    """Measure and write benchmarks/results/train_speed.md."""
+    from dronecap.datasets.blender import import_blender
+    from dronecap.datasets.format import open_dataset
+    from dronecap.nerf.config import preset
+    from dronecap.nerf.trainer import Trainer
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--warm", type=int, default=1000, help="steps trained before timing")
+    p.add_argument("--window", type=int, default=32, help="steps per timed window")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--cache", default="/tmp/dronecap_bench")
+    args = p.parse_args()
+    path = Path(args.cache) / "lego.h5"
+    if not path.exists():
+        import_blender(LEGO, path, progress=False)
+    ds = open_dataset(path)
+    torch.set_num_threads(1)
+    base = preset("tiny-dronerf").replace(grid_res=64, tile_samples=8192)
+    tr = Trainer(base, ds)
+    tr.train(args.warm, progress=False)
+    state = {k: v.clone() for k, v in tr.field.state_dict().items()}
+    grid = tr.grid_state()
+    rows = []
+
+    def step_ms(label: str, threads: int, backend: str = "auto", **changes) -> None:
+        torch.set_num_threads(threads)
+        t = Trainer(base.replace(**changes), ds, backend=backend)
+        t.field.load_state_dict(state)
+        t.load_grid_state(grid)
+        t.step = tr.step  # after warm-up: updates every 16 steps
+        t.samples_per_ray = tr.samples_per_ray
+        t.train(4, progress=False)
+        meds = []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            logs = t.train(args.window, progress=False)
+            meds.append(1000 * (time.perf_counter() - t0) / args.window)
+        spr = np.mean([lg["samples"] / lg["rays"] for lg in logs])
+        rows.append(
+            (
+                label,
+                f"{np.median(meds):.1f} ms/step",
+                f"{np.mean([lg['samples'] for lg in logs]):.0f} samples, {spr:.1f}/ray",
+            )
+        )
+        print(rows[-1], flush=True)
+
+    def render_s(label: str, threads: int) -> None:
+        torch.set_num_threads(threads)
+        test = np.flatnonzero(ds.split == 2)[::40]
+        times = []
+        for _ in range(args.repeats):
+            for i in test:
+                t0 = time.perf_counter()
+                tr.render(ds.poses[i], ds.intrinsics)
+                times.append(time.perf_counter() - t0)
+        rows.append((label, f"{1000 * np.median(times):.0f} ms/view", f"{len(test)} views"))
+        print(rows[-1], flush=True)
+
+    step_ms("step, tiny-dronerf (grid 64^3), 1 tile of 8192, C++ kernels, 1 thread", 1)
+    step_ms("step, same, 2 threads", 2)
+    step_ms("step, 8 tiles of 1024 (GAP9 accumulation), 1 thread", 1, tile_samples=1024)
+    step_ms("step, grid 128^3 (paper preset as is), 1 thread", 1, grid_res=128)
+    step_ms("step, PyTorch reference encoding + marching, 1 thread", 1, backend="torch")
+    render_s("render 160x160 view, 1 thread", 1)
+    render_s("render 160x160 view, 2 threads", 2)
+    load = os.getloadavg()[0]
+    lines = [
+        "# Trainer speed (lego 160 px, tiny-dronerf)",
+        "",
+        f"torch {torch.__version__}, after {args.warm} warm-up steps; median of {args.repeats} "
+        f"windows of {args.window} steps (grid updates included, amortised). Machine shared with "
+        f"other jobs: load average {load:.1f} at the end of the run.",
+        "",
+        "Command: `.venv/bin/python benchmarks/train_speed.py`",
+        "",
+        "| measurement | time | batch |",
+        "|---|---:|---|",
+        *[f"| {a} | {b} | {c} |" for a, b, c in rows],
+    ]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "train_speed.md").write_text(text)
+
+
+if __name__ == "__main__":
+    main()

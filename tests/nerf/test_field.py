@@ -1,0 +1,67 @@
+"""The radiance field: activations, SH encoding, automatic n_max, low precision."""
+
+import math
+
+import numpy as np
+import torch
+from dronecap.nerf.config import preset
+from dronecap.nerf.field import Field, auto_n_max, trunc_exp
+from dronecap.nerf.sh import sh_encode
+
+AABB = np.array([[-1.0, -1, -1], [1, 1, 1]])
+
+
+def test_trunc_exp_never_overflows_and_keeps_gradients():
+    x = torch.tensor([-1e9, -3.0, 0.0, 3.0, 1e9], requires_grad=True)
+    y = trunc_exp(x)
+    y.sum().backward()
+    assert torch.isfinite(y).all() and torch.isfinite(x.grad).all()
+    assert math.isclose(y[3].item(), math.exp(3.0), rel_tol=1e-6)
+    # e^15 = 3.3e6 would overflow float16: the field applies it in float32 (see below)
+
+
+def test_sh_values_on_z_axis():
+    sh = sh_encode(torch.tensor([[0.0, 0.0, 1.0]]))[0]
+    assert sh.shape == (16,)
+    assert math.isclose(sh[0].item(), 0.28209479, rel_tol=1e-6)
+    assert math.isclose(sh[2].item(), 0.48860251, rel_tol=1e-6)  # Y_1^0 = c z
+    assert math.isclose(sh[6].item(), 0.94617470 - 0.31539157, rel_tol=1e-6)
+    assert math.isclose(sh[12].item(), 0.37317633 * 2, rel_tol=1e-6)  # z (5 z^2 - 3)
+    assert torch.count_nonzero(sh).item() == 4  # only m = 0 terms survive on the axis
+
+
+def test_sh_is_orthonormal_on_the_sphere():
+    g = torch.Generator().manual_seed(0)
+    d = torch.randn(200_000, 3, generator=g, dtype=torch.float64)
+    d = d / d.norm(dim=1, keepdim=True)
+    y = sh_encode(d)
+    gram = 4 * math.pi * (y.T @ y) / len(d)
+    assert torch.allclose(gram, torch.eye(16, dtype=torch.float64), atol=0.02)
+
+
+def test_auto_n_max_by_hand():
+    # extent 2, near 4, focal 200 px: a pixel covers 4/200 = 0.02 units -> 100 cells
+    assert auto_n_max(AABB, 4.0, 200.0) == 100
+    assert auto_n_max(AABB, 1e3, 1.0) == 16  # never below the coarsest useful level
+
+
+def test_field_shapes_channels_and_extreme_points():
+    cfg = preset("test")
+    for c in (1, 3):
+        f = Field(cfg, c, AABB, 64, backend="torch")
+        pts = torch.tensor([[-1.0, -1, -1], [1, 1, 1], [5, -7, 0.2], [0, 0, 0]], requires_grad=True)
+        d = torch.nn.functional.normalize(torch.randn(4, 3), dim=-1)
+        col, sig = f(pts, d)
+        assert col.shape == (4, c) and sig.shape == (4,)
+        (col.sum() + sig.sum()).backward()
+        assert torch.isfinite(col).all() and torch.isfinite(sig).all()
+        assert all(torch.isfinite(p.grad).all() for p in f.parameters())
+
+
+def test_fp16_field_rounds_activations():
+    cfg = preset("test").replace(precision="fp16")
+    f = Field(cfg, 3, AABB, 64, backend="torch")
+    with torch.no_grad():
+        f.encoding.table.normal_(0, 1)
+    _, geo = f.geometry(torch.rand(32, 3) * 2 - 1)
+    assert torch.equal(geo, geo.half().float())

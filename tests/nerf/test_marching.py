@@ -1,0 +1,89 @@
+"""Ray marching into packed samples and the occupancy grid that prunes them."""
+
+import math
+
+import pytest
+import torch
+from dronecap.nerf import occupancy
+from dronecap.nerf.marching import march, take_rays
+from dronecap.nerf.rays import ray_aabb
+
+BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+def _rays():
+    o = torch.tensor([[0.0, 0.0, -3.0], [0.0, 5.0, -3.0], [0.2, 0.1, 0.0], [1.0, 0.3, 0.3]])
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    return o, d
+
+
+def test_counts_positions_and_bounds_without_grid():
+    o, d = _rays()
+    tn, tf, _ = ray_aabb(o, d, BOX)
+    s = march(o, d, tn, tf, 0.25, None, BOX, 1000)
+    # ray 0 crosses 2 units: 8 steps; ray 1 misses; ray 2 starts inside, 0.8 from the face:
+    # ceil(0.8 / 0.25) = 4 candidates with midpoints 0.125 .. 0.875, the last past t_far,
+    # dropped -> 3; ray 3 starts exactly on the +x face going in: 8
+    assert s.counts.tolist() == [8, 0, 3, 8]
+    assert torch.all(s.ray_indices[1:] >= s.ray_indices[:-1])
+    mids = 0.5 * (s.t_starts + s.t_ends)
+    pts = o[s.ray_indices] + d[s.ray_indices] * mids[:, None]
+    assert torch.all(pts >= -1) and torch.all(pts <= 1)  # only points inside the AABB
+    assert torch.all(s.t_starts >= tn[s.ray_indices]) and torch.all(s.t_ends <= tf[s.ray_indices])
+    assert torch.allclose(s.t_starts[:2], torch.tensor([2.0, 2.25]))  # box entry at t = 2
+
+
+def test_max_samples_and_zero_step():
+    o, d = _rays()
+    tn, tf, _ = ray_aabb(o, d, BOX)
+    s = march(o, d, tn, tf, 0.01, None, BOX, 16)
+    assert int(s.counts.max()) == 16
+    with pytest.raises(ValueError, match="positive"):
+        march(o, d, tn, tf, 0.0, None, BOX, 16)
+
+
+def test_grid_prunes_empty_cells():
+    cfg = occupancy.GridConfig(res=4)
+    st = occupancy.init_state(cfg)
+    st.occupied[:] = False
+    # occupy only the cell containing (0.1, 0.1, 0.6): indices (2, 2, 3)
+    st.occupied[(2 * 4 + 2) * 4 + 3] = True
+    o = torch.tensor([[0.1, 0.1, -3.0]])
+    d = torch.tensor([[0.0, 0.0, 1.0]])
+    tn, tf, _ = ray_aabb(o, d, BOX)
+    s = march(o, d, tn, tf, 0.1, st, BOX, 100)
+    z = (o[0, 2] + 0.5 * (s.t_starts + s.t_ends)).tolist()
+    assert len(z) == 5 and all(0.5 <= v <= 1.0 for v in z)
+
+
+def test_take_rays_renumbers():
+    o, d = _rays()
+    tn, tf, _ = ray_aabb(o, d, BOX)
+    s = march(o, d, tn, tf, 0.25, None, BOX, 1000)
+    t = take_rays(s, torch.tensor([0, 1, 2]))
+    assert t.counts.tolist() == [8, 0, 3] and t.n == 11 and int(t.ray_indices.max()) == 2
+
+
+def test_grid_schedule_matches_instant_ngp():
+    cfg = occupancy.GridConfig(res=8, every=16)
+    due = [s for s in range(600) if occupancy.due(cfg, s)]
+    assert due[:33] == list(range(33))[:32] + [32]  # every step until 32
+    assert 34 in due and 35 not in due  # then every 2 steps (step // 16 = 2)
+    assert [s for s in due if s >= 512][:3] == [512, 528, 544]  # then every 16
+
+
+def test_grid_update_thresholds_density():
+    cfg = occupancy.GridConfig(res=4, warmup=10)
+    st = occupancy.init_state(cfg)
+    g = torch.Generator().manual_seed(0)
+
+    def density(p):  # dense in the x > 0 half only
+        return torch.where(p[:, 0] > 0, 100.0, 0.0)
+
+    st = occupancy.update(cfg, st, 0, density, BOX, 0.01, g)
+    occ = st.occupied.reshape(4, 4, 4)
+    assert occ[2:].all() and not occ[:2].any()
+    assert math.isclose(float(st.density.max()), 1.0, rel_tol=1e-6)  # 100 * 0.01
+    # after warm-up with zero density, the EMA decays
+    st2 = occupancy.update(cfg, st, 20, lambda p: torch.zeros(len(p)), BOX, 0.01, g)
+    assert math.isclose(float(st2.density.max()), 0.95, rel_tol=1e-6)
