@@ -160,9 +160,15 @@ def corridor(seed: int = 0) -> Scene:
     pw, ph = int(width / TEXEL), int(height / TEXEL)
     stains = camo(rng, (pw, px), (120.0, 40.0, 10.0), levels=6)
     floor_tex = tiles(rng, (pw, px), (60, 60), 2) * (0.5 + 0.55 * stains)
-    ceiling_tex = tiles(rng, (pw, px), (120, 120), 4) * 0.45 + 0.15
-    for xc in np.arange(100, px, 300):  # ceiling lamps
-        ceiling_tex[pw // 2 - 25 : pw // 2 + 25, xc : xc + 120] = 0.8
+    # Ceiling panels and lamps repeat along the flight direction, where a repeated pattern can
+    # be matched to the wrong copy consistently with a wrong motion: stains and lamps of random
+    # size and pattern make every stretch unique.
+    stains = camo(rng, (pw, px), (100.0, 30.0, 10.0), levels=5)
+    ceiling_tex = tiles(rng, (pw, px), (120, 120), 4) * (0.25 + 0.45 * stains) + 0.1
+    for xc in np.arange(100, px - 200, 300) + rng.integers(-60, 60, len(range(100, px - 200, 300))):
+        half, length = int(rng.integers(15, 35)), int(rng.integers(70, 180))
+        lamp = ceiling_tex[pw // 2 - half : pw // 2 + half, xc : xc + length]
+        lamp[:] = 0.55 + 0.3 * camo(rng, lamp.shape, (20.0, 6.0), levels=3)
     walls = {
         "left": (
             _wall_texture(rng, px, ph, "brick"),
