@@ -31,8 +31,17 @@ TILE = 1024
 CONFIG = dict(levels=16, features=2, log2_hashmap=13, n_min=16, n_max=2048)
 
 
-def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 5) -> float:
-    """Median wall time of ``fn()`` in milliseconds over ``repeats`` calls after ``warmup``."""
+class Timing(float):
+    """A median wall time in ms that also carries the fastest repeat (``best``)."""
+
+    best: float
+
+    def __str__(self) -> str:
+        return f"{float(self):.2f} ({self.best:.2f})"
+
+
+def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 5) -> Timing:
+    """Median (and best) wall time of ``fn()`` in ms over ``repeats`` calls after ``warmup``."""
     for _ in range(warmup):
         fn()
     times = []
@@ -40,7 +49,9 @@ def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 5) -> float:
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
+    timing = Timing(1e3 * statistics.median(times))
+    timing.best = 1e3 * min(times)
+    return timing
 
 
 def mlp(sizes: list[int]) -> torch.nn.Sequential:
@@ -53,7 +64,7 @@ def mlp(sizes: list[int]) -> torch.nn.Sequential:
     return torch.nn.Sequential(*layers)
 
 
-def encoding_ms(grid: HashGrid, x: torch.Tensor, repeats: int, tile: int, mode: str = "") -> float:
+def encoding_ms(grid: HashGrid, x: torch.Tensor, repeats: int, tile: int, mode: str = "") -> Timing:
     """Forward + backward of the encoding of ``x`` in tiles of ``tile`` points (ms)."""
     grad_out = torch.randn(x.shape[0], grid.out_dim)
 
@@ -72,7 +83,7 @@ def encoding_ms(grid: HashGrid, x: torch.Tensor, repeats: int, tile: int, mode: 
     return median_ms(run, repeats)
 
 
-def step_proxy_ms(grid: HashGrid, x: torch.Tensor, repeats: int, fused_adam: bool) -> float:
+def step_proxy_ms(grid: HashGrid, x: torch.Tensor, repeats: int, fused_adam: bool) -> Timing:
     """Encoding + both MLPs + MSE + backward + Adam on all of ``x`` at once (ms)."""
     torch.manual_seed(0)
     density, colour = mlp([32, 64, 16]), mlp([31, 64, 64, 3])
@@ -94,7 +105,7 @@ def step_proxy_ms(grid: HashGrid, x: torch.Tensor, repeats: int, fused_adam: boo
     return median_ms(step, repeats)
 
 
-def march_rows(repeats: int) -> list[tuple[str, float]]:
+def march_rows(repeats: int) -> list[tuple[str, Timing]]:
     """Reference vs C++ marching of 1000 rays through a 128^3 grid with a ball occupied (ms)."""
     g = torch.Generator().manual_seed(0)
     aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -118,15 +129,15 @@ def march_rows(repeats: int) -> list[tuple[str, float]]:
     return [(f"{label}, reference", ref), (f"{label}, C++", cpp)]
 
 
-def measure(args: argparse.Namespace) -> list[tuple[str, float]]:
+def measure(args: argparse.Namespace) -> list[tuple[str, Timing]]:
     """Every measurement of this benchmark at the current thread count: (name, ms) rows."""
     torch.manual_seed(0)
     x = torch.rand(N, 3)
-    rows: list[tuple[str, float]] = []
+    rows: list[tuple[str, Timing]] = []
 
-    def add(name: str, ms: float) -> None:
+    def add(name: str, ms: Timing) -> None:
         rows.append((name, ms))
-        print(f"{torch.get_num_threads()} thr  {name:70s} {ms:9.2f} ms", flush=True)
+        print(f"{torch.get_num_threads()} thr  {name:70s} {ms} ms", flush=True)
 
     backends = ["torch", "cpp"] + ([] if args.skip_compile else ["compile"])
     for backend in backends:
@@ -182,12 +193,13 @@ def main() -> None:
     head = "| measurement | " + " | ".join(f"{t} thread(s), ms" for t in columns) + " |\n"
     table = head + "|---|" + "---:|" * len(columns) + "\n"
     for name in names:
-        table += f"| {name} | " + " | ".join(f"{c[name]:.2f}" for c in columns.values()) + " |\n"
+        table += f"| {name} | " + " | ".join(str(c[name]) for c in columns.values()) + " |\n"
     threads = " ".join(str(t) for t in args.threads)
     text = (
         "# Hash encoding and marching speed\n\n"
         f"Encoding L=16 F=2 T=2^13 n_min=16 n_max=2048; torch {torch.__version__}; medians of "
-        f"{args.repeats} repeats after warm-up. The machine (2 cores) was shared with other jobs: "
+        f"{args.repeats} repeats after warm-up, the fastest repeat in brackets. The machine "
+        "(2 cores) was shared with other jobs: "
         f"load average {', '.join(f'{v:.1f}' for v in loads)} after each column, so absolute "
         "times are inflated (most for 2 threads, whose OpenMP regions stall when a core is "
         "taken); compare rows within a column.\n"
