@@ -24,6 +24,7 @@ optimizer step to emulate pure low-precision storage, where updates below half a
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import warnings
@@ -147,6 +148,11 @@ class HashGrid(torch.nn.Module):
             "compile" (torch.compile of the reference) or "torch" (the reference).
         dtype: storage precision of the table (float32, float16 or bfloat16; emulated, see the
             module docstring).
+        inplace_grad: with the C++ kernel, add the table gradient straight into
+            ``table.grad`` instead of returning a full-size gradient per call (saves a
+            temporary and an addition per call when a step accumulates several tiles; autograd
+            then sees no gradient for the table: use ``loss.backward()``, not
+            ``torch.autograd.grad``).
     """
 
     def __init__(
@@ -158,6 +164,7 @@ class HashGrid(torch.nn.Module):
         n_max: int,
         backend: str = "auto",
         dtype: torch.dtype = torch.float32,
+        inplace_grad: bool = False,
     ) -> None:
         super().__init__()
         if backend not in BACKENDS:
@@ -172,6 +179,7 @@ class HashGrid(torch.nn.Module):
         self.out_dim = levels * features
         self.dtype = dtype
         self.backend = backend
+        self.inplace_grad = inplace_grad
         table = torch.empty(self.offsets[-1], features).uniform_(-1e-4, 1e-4)
         self.table = torch.nn.Parameter(table)
         self._encode = None  # resolved lazily on first forward
@@ -181,6 +189,8 @@ class HashGrid(torch.nn.Module):
         if self.backend in ("auto", "cpp"):
             try:
                 load_extension()
+                if self.inplace_grad:
+                    return functools.partial(hash_encode_cpp, grad_into=self.table)
                 return hash_encode_cpp
             except Exception as err:  # a compiler or build failure of any kind
                 if self.backend == "cpp":
@@ -254,14 +264,19 @@ BACKWARD_MODES = {"level": 0, "atomic": 1, "partial": 2}
 
 
 class _CppEncode(torch.autograd.Function):
-    """Autograd wrapper of the C++ kernels; gradient w.r.t. the table only."""
+    """Autograd wrapper of the C++ kernels; gradient w.r.t. the table only.
+
+    With ``grad_into`` (a float32 leaf parameter), the backward adds the table gradient straight
+    into ``grad_into.grad`` and hands autograd no gradient for ``table``.
+    """
 
     @staticmethod
-    def forward(ctx, x, table, resolutions, offsets, log2_hashmap, mode):  # noqa: D102
+    def forward(ctx, x, table, resolutions, offsets, log2_hashmap, mode, grad_into):  # noqa: D102
         ext = load_extension()
         x = x.float().contiguous()  # the kernel clamps (NaN -> 0) itself
         ctx.save_for_backward(x)
         ctx.args = (table.shape[0], table.shape[1], resolutions, offsets, log2_hashmap, mode)
+        ctx.grad_into = grad_into
         return ext.forward(x, table.contiguous(), resolutions, offsets, log2_hashmap)
 
     @staticmethod
@@ -269,8 +284,18 @@ class _CppEncode(torch.autograd.Function):
         (x,) = ctx.saved_tensors
         grad = None
         if ctx.needs_input_grad[1]:
-            grad = load_extension().backward(grad_out.float().contiguous(), x, *ctx.args)
-        return None, grad, None, None, None, None
+            ext, grad_out = load_extension(), grad_out.float().contiguous()
+            leaf = ctx.grad_into
+            if leaf is None:
+                grad = ext.backward(grad_out, x, _EMPTY, *ctx.args)
+            else:
+                if leaf.grad is None:
+                    leaf.grad = torch.zeros_like(leaf, memory_format=torch.contiguous_format)
+                ext.backward(grad_out, x, leaf.grad, *ctx.args)
+        return None, grad, None, None, None, None, None
+
+
+_EMPTY = torch.empty(0)
 
 
 def hash_encode_cpp(
@@ -280,6 +305,7 @@ def hash_encode_cpp(
     offsets: Sequence[int],
     log2_hashmap: int,
     backward_mode: str = "level",
+    grad_into: torch.nn.Parameter | None = None,
 ) -> Tensor:
     """The C++/OpenMP hash encoding; same arguments, result and gradient as the reference.
 
@@ -289,11 +315,16 @@ def hash_encode_cpp(
         resolutions, offsets, log2_hashmap: as in :func:`hash_encode_reference`.
         backward_mode: how threads share the gradient scatter: "level" (each thread owns whole
             levels; the default, race-free), "atomic" or "partial" (per-thread tables).
+        grad_into: a float32 parameter (usually ``table`` itself, or the master copy ``table``
+            was rounded from) whose ``.grad`` receives the table gradient added in place, with
+            no full-size temporary per call ("level" mode only). Autograd then sees no gradient
+            for ``table``: use with ``loss.backward()``, not ``torch.autograd.grad``.
     Returns:
         [N, L * F] float32, differentiable w.r.t. ``table``.
     """
     mode = BACKWARD_MODES[backward_mode]
-    return _CppEncode.apply(x, table.float(), list(resolutions), list(offsets), log2_hashmap, mode)
+    args = (list(resolutions), list(offsets), log2_hashmap, mode, grad_into)
+    return _CppEncode.apply(x, table.float(), *args)
 
 
 _COMPILED = None

@@ -298,9 +298,11 @@ torch::Tensor hash_forward(torch::Tensor x, torch::Tensor table, std::vector<int
 
 // mode 0: split by level (default, race-free); 1: split by points with atomics;
 // 2: split by points into per-thread partial tables, summed at the end.
-torch::Tensor hash_backward(torch::Tensor grad_out, torch::Tensor x, int64_t rows, int64_t nf,
-                            std::vector<int64_t> resolutions, std::vector<int64_t> offsets,
-                            int64_t log2_hashmap, int64_t mode) {
+// `into`: empty, or a float32 [rows, F] gradient that receives the result added in place
+// (mode 0 only; no full-size temporary). Returns the gradient tensor written.
+torch::Tensor hash_backward(torch::Tensor grad_out, torch::Tensor x, torch::Tensor into,
+                            int64_t rows, int64_t nf, std::vector<int64_t> resolutions,
+                            std::vector<int64_t> offsets, int64_t log2_hashmap, int64_t mode) {
   TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32 &&
                   x.is_contiguous(), "x must be a contiguous float32 [N, 3] tensor");
   const auto levels = make_levels(resolutions, offsets, log2_hashmap);
@@ -312,13 +314,22 @@ torch::Tensor hash_backward(torch::Tensor grad_out, torch::Tensor x, int64_t row
   const float* xp = x.data_ptr<float>();
   const float* gp = grad_out.data_ptr<float>();
   const int nt = at::get_num_threads();
+  const bool accumulate = into.numel() > 0;
+  if (accumulate) {
+    TORCH_CHECK(mode == 0, "in-place accumulation needs backward mode 0");
+    TORCH_CHECK(into.scalar_type() == torch::kFloat32 && into.is_contiguous() &&
+                    into.dim() == 2 && into.size(0) == rows && into.size(1) == nf,
+                "into must be a contiguous float32 [rows, F] tensor");
+  }
   // Mode 0 zeroes each level's slice in the thread that then scatters into it (one pass less).
-  auto grad = mode == 0 ? torch::empty({rows, nf}, x.options()) : torch::zeros({rows, nf}, x.options());
+  auto grad = accumulate ? into
+              : mode == 0 ? torch::empty({rows, nf}, x.options())
+                          : torch::zeros({rows, nf}, x.options());
   float* grad_p = grad.data_ptr<float>();
   if (mode == 0) {
 #pragma omp parallel for schedule(static, 1) num_threads(nt)
     for (int64_t l = 0; l < nl; ++l) {
-      std::fill(grad_p + offsets[l] * nf, grad_p + offsets[l + 1] * nf, 0.0f);
+      if (!accumulate) std::fill(grad_p + offsets[l] * nf, grad_p + offsets[l + 1] * nf, 0.0f);
       DISPATCH_F(nf, backward_range, xp, gp, grad_p, 0, n, levels[l], l, out_dim, nf, false);
     }
   } else if (mode == 1) {
