@@ -387,10 +387,15 @@ class GlobalEvaluator:
         return t.model_weights(), (t.grid_state() if self.s.exchange_grid else None)
 
     def write_final(self, run_dir: Path, r: int) -> None:
-        """Copy the global checkpoint of round ``r`` to ``RUN/checkpoint.pt``."""
+        """Make ``run_dir`` a run folder of ``dronecap render``/``eval``: ``checkpoint.pt`` (the
+        global model of round ``r``) and ``run.json`` (the coordinator's shard, which holds the
+        common test set)."""
         src = round_file(Path(run_dir) / "global", r)
         with atomic_output(Path(run_dir) / FINAL) as tmp:
             tmp.write_bytes(src.read_bytes())
+        info = {"dataset": self.s.shards[0], "config": self.trainer.cfg.__dict__, "round": r}
+        with atomic_output(Path(run_dir) / "run.json") as tmp:
+            tmp.write_text(json.dumps(info, indent=1, default=list))
 
 
 def link_time(n_bytes: int) -> float | None:
