@@ -4,7 +4,8 @@ lego 160x160 RGB, 4 drones x 25 train images (``dronecap shard``), the same step
 method (N_pt + R N_l steps on the coordinator's critical path; each baseline trains that many
 steps), PSNR/SSIM on evenly spaced test views (rendering is slow here). Federated runs use Flower's
 simulation engine with the tiny-dronerf hash table and MLPs (T = 2^13, L = 16, F = 2, 64-wide),
-fp16 transfer; a second IID run with fp32 transfer measures what fp16 costs in PSNR.
+fp16 transfer (its PSNR cost: the final global model with fp16-rounded weights, or with --fp32-run
+a second IID run with fp32 transfer).
 
 Run (all outputs resumable; the run folders stay in --work):
 
@@ -18,14 +19,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import time
 from pathlib import Path
 
 from dronecap.datasets.blender import import_blender
 from dronecap.datasets.shard import shard_dataset
 from dronecap.nerf import federated as fed
 from dronecap.nerf.config import preset
-from dronecap.nerf.fedbaselines import run_baselines
+from dronecap.nerf.fedbaselines import merge_curves, run_baselines
 from dronecap.nerf.fedplot import plot_runs
 from dronecap.nerf.trainer import Trainer
 
@@ -55,6 +55,12 @@ def main() -> None:
         help="also run IID with fp32 transfer (else: fp16 cost "
         "measured by round-tripping the final global model through fp16 once)",
     )
+    ap.add_argument(
+        "--only",
+        choices=("federated", "baselines", "report"),
+        help="run only the federations, only the baselines (both may run at once), or "
+        "nothing: report what --work holds",
+    )
     a = ap.parse_args()
 
     a.work.mkdir(parents=True, exist_ok=True)
@@ -82,36 +88,39 @@ def main() -> None:
         )
         run.mkdir(parents=True, exist_ok=True)
         fed.save_settings(run, s)
-        t0 = time.perf_counter()
-        rounds = fed.run_simulated(run)
-        fed_s = time.perf_counter() - t0
-        base_s = None
-        if dtype == "fp16":
-            t0 = time.perf_counter()
+        if a.only != "report" and a.only != "baselines":
+            fed.run_simulated(run)
+        if a.only != "report" and a.only != "federated" and dtype == "fp16":
             run_baselines(run, s, curve_marks=False)
-            base_s = time.perf_counter() - t0
+        if (run / fed.FINAL).exists() and a.only != "report" and dtype == "fp16":
+            _fp16_cost(run, s)
+        if (run / "baselines" / "curves.json").exists():
+            merge_curves(run, s)
+        if not (run / fed.ROUNDS).exists():
+            continue
         doc = json.loads((run / fed.ROUNDS).read_text())
         if dtype == "fp16":
             panels[f"{scheme.upper()} (4 drones x 25 images)"] = doc
-        last = rounds[-1]
+        rounds = doc["rounds"]
         final = {k: c[-1] for k, c in doc.get("baselines", {}).items()}
         singles = {k: v for k, v in final.items() if k.startswith("client_")}
-        best = max(singles, key=lambda k: singles[k]["psnr"]) if singles else None
-        r1 = rounds[1]
+        best = max(singles, key=lambda k: singles[k]["psnr"]) if len(singles) == 4 else None
+        r1 = rounds[min(1, len(rounds) - 1)]
+        cost = run / "fp16_cost.json"
         rows.append(
             {
                 "scheme": scheme,
                 "transfer": dtype,
-                "federated": {"psnr": last["psnr"], "ssim": last["ssim"]},
+                "rounds_done": rounds[-1]["round"],
+                "federated": {"psnr": rounds[-1]["psnr"], "ssim": rounds[-1]["ssim"]},
                 "centralized": final.get("centralized"),
                 "best_single": best and {"name": best, **singles[best]},
                 "singles": singles,
-                "fp16_roundtrip_db": _fp16_cost(run, s, last["psnr"]) if dtype == "fp16" else None,
-                "bytes_up_per_client": r1["bytes_up"]["1"],
-                "bytes_down_per_client": r1["bytes_down"]["1"],
+                "fp16_roundtrip_db": json.loads(cost.read_text()) if cost.exists() else None,
+                "bytes_up_per_client": max(r1["bytes_up"].values()),
+                "bytes_down_per_client": max(r1["bytes_down"].values(), default=0),
                 "link_s_per_round": r1["link_s"],
-                "fed_wall_s": fed_s,
-                "baselines_wall_s": base_s,
+                "fed_wall_s": sum(r["wall_s"] for r in rounds),
                 "steps": s.total_steps,
             }
         )
@@ -123,15 +132,21 @@ def main() -> None:
     print(report)
 
 
-def _fp16_cost(run: Path, s: fed.FedSettings, psnr: float) -> float:
-    """PSNR change of the final global model when its weights go once through fp16."""
+def _fp16_cost(run: Path, s: fed.FedSettings) -> None:
+    """Store in RUN/fp16_cost.json the PSNR change of the final global model when its weights go
+    once through fp16 (same test views as the rounds)."""
     import numpy as np
 
+    out = run / "fp16_cost.json"
+    if out.exists():
+        return
     t = Trainer.load(run / fed.FINAL)
+    test = fed.test_split(s.shards[0], s.eval_views)
+    before = float(t.evaluate(test)["psnr"])
     t.load_model_weights(
         {k: v.astype(np.float16).astype(np.float32) for k, v in t.model_weights().items()}
     )
-    return float(t.evaluate(fed.test_split(s.shards[0], s.eval_views))["psnr"]) - psnr
+    out.write_text(json.dumps(float(t.evaluate(test)["psnr"]) - before))
 
 
 def _report(rows: list[dict], a: argparse.Namespace) -> str:
@@ -151,27 +166,38 @@ def _report(rows: list[dict], a: argparse.Namespace) -> str:
         "simulation engine (Ray, 1 CPU per drone) on a shared 2-core CPU.",
         "",
         "| scheme | transfer | federated PSNR / SSIM | best single drone | centralized | "
-        "fed - best single | central - fed | up per drone per round | link per round | wall |",
+        "fed - best single | central - fed | up per drone per round | link per round | "
+        "federated wall |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         f, c, b = r["federated"], r["centralized"], r["best_single"]
-        ref = c or next(x for x in rows if x["scheme"] == r["scheme"])["centralized"]
-        bref = b or next(x for x in rows if x["scheme"] == r["scheme"])["best_single"]
         link = "-" if r["link_s_per_round"] is None else f"{r['link_s_per_round']:.2f} s"
+        done = "" if r["rounds_done"] == a.rounds else f" (after round {r['rounds_done']})"
         lines.append(
-            f"| {r['scheme']} | {r['transfer']} | {f['psnr']:.2f} dB / {f['ssim']:.3f} | "
-            + (f"{b['psnr']:.2f} dB ({b['name']}) | " if b else "- | ")
-            + (f"{c['psnr']:.2f} dB | " if c else "- | ")
-            + f"{f['psnr'] - bref['psnr']:+.2f} dB | {ref['psnr'] - f['psnr']:+.2f} dB | "
-            + f"{r['bytes_up_per_client']:,} B | {link} | fed {r['fed_wall_s']:.0f} s"
-            + (f", baselines {r['baselines_wall_s']:.0f} s |" if r["baselines_wall_s"] else " |")
+            f"| {r['scheme']} | {r['transfer']} | {f['psnr']:.2f} dB / {f['ssim']:.3f}{done} | "
+            + (f"{b['psnr']:.2f} dB ({b['name']}) | " if b else "not run | ")
+            + (f"{c['psnr']:.2f} dB | " if c else "not run | ")
+            + (f"{f['psnr'] - b['psnr']:+.2f} dB | " if b else "- | ")
+            + (f"{c['psnr'] - f['psnr']:+.2f} dB | " if c else "- | ")
+            + f"{r['bytes_up_per_client']:,} B | {link} | {r['fed_wall_s']:.0f} s |"
         )
     lines += [
         "",
         "Bytes are exact: every object Flower serialised for one drone's reply (arrays in the",
         "transfer dtype, .npy and record headers). Link time: all uploads and downloads of a",
         "round in turn over one shared 15 Mbit/s radio (the GAP9 cost model's link).",
+        "",
+        "fp16 transfer: PSNR change of the final global model after one fp16 round trip of its "
+        "weights: "
+        + (
+            ", ".join(
+                f"{r['scheme']} {r['fp16_roundtrip_db']:+.3f} dB"
+                for r in rows
+                if r["fp16_roundtrip_db"] is not None
+            )
+            or "not measured"
+        ),
         "",
         "Single drones: "
         + "; ".join(

@@ -8,7 +8,9 @@ model (after ``N_pt``, then every ``N_l`` steps) on the same test views:
 - ``client_K``: on drone K's train images only.
 
 Each baseline checkpoints at every mark (``RUN/baselines/<name>.pt``) and records its curve in
-``RUN/rounds.json`` under ``baselines``, so an interrupted run resumes at its last mark.
+``RUN/baselines/curves.json`` (its own file, so baselines may train while the federation runs),
+so an interrupted run resumes at its last mark; :func:`merge_curves` copies the curves into
+``RUN/rounds.json`` under ``baselines``.
 """
 
 from __future__ import annotations
@@ -91,7 +93,8 @@ def run_baseline(
         curve.append({"steps": m, "psnr": float(metrics["psnr"]), "ssim": float(metrics["ssim"])})
         curves = _curves(run_dir)
         curves[name] = curve
-        save_rounds(run_dir, s, load_rounds(run_dir), baselines=curves)
+        with atomic_output(_curves_file(run_dir)) as tmp:
+            tmp.write_text(json.dumps(curves, indent=1))
     return curve
 
 
@@ -101,6 +104,15 @@ def run_baselines(run_dir: Path, s: FedSettings, curve_marks: bool = True) -> di
     return {n: run_baseline(run_dir, s, n, ds, curve_marks) for n, ds in sets.items()}
 
 
+def merge_curves(run_dir: Path, s: FedSettings) -> None:
+    """Copy the baselines' curves into ``RUN/rounds.json`` (key ``baselines``)."""
+    save_rounds(run_dir, s, load_rounds(run_dir), baselines=_curves(run_dir))
+
+
+def _curves_file(run_dir: Path) -> Path:
+    return Path(run_dir) / "baselines" / "curves.json"
+
+
 def _curves(run_dir: Path) -> dict[str, list[dict]]:
-    p = Path(run_dir) / "rounds.json"
-    return dict(json.loads(p.read_text()).get("baselines", {})) if p.exists() else {}
+    p = _curves_file(run_dir)
+    return dict(json.loads(p.read_text())) if p.exists() else {}

@@ -111,9 +111,10 @@ def run(args: argparse.Namespace) -> int:
     if not rounds or rounds[-1]["round"] != s.rounds:
         raise InputError(f"the federation stopped after {len(rounds)} rounds; see the log", out)
     if args.baselines:
-        from dronecap.nerf.fedbaselines import run_baselines
+        from dronecap.nerf.fedbaselines import merge_curves, run_baselines
 
         run_baselines(out, s)
+        merge_curves(out, s)
     from dronecap.nerf.fedplot import plot_runs
 
     doc = json.loads((out / fed.ROUNDS).read_text())
