@@ -61,11 +61,12 @@ class Scene:
             raise InputError("dataset has no poses/intrinsics: run `dronecap sfm` first")
         if ds.aabb is None:
             raise InputError("dataset has no scene AABB (attrs 'aabb')")
+        train = training_frames(ds)
         if ds.near_far is not None:
-            near = float(np.mean(ds.near_far[:, 0]))
+            near = float(np.mean(ds.near_far[train, 0]))
         else:
             centre = np.mean(ds.aabb, 0)
-            near = float(np.mean(np.linalg.norm(ds.poses[:, :3, 3] - centre, axis=1)))
+            near = float(np.mean(np.linalg.norm(ds.poses[train, :3, 3] - centre, axis=1)))
         bg = ds.background if ds.background is not None else (0.0,) * ds.channels
         k = ds.intrinsics
         return cls(np.asarray(ds.aabb, float), near, 0.5 * (k.fx + k.fy), ds.channels, tuple(bg))
