@@ -152,6 +152,11 @@ def measure(args: argparse.Namespace) -> list[tuple[str, Timing]]:
             step_proxy_ms(grid, x, args.repeats, fused_adam=True),
         )
         if backend == "cpp":
+            inplace = HashGrid(**CONFIG, backend=backend, inplace_grad=True)
+            add(
+                f"encoding fwd+bwd, 8 tiles of {TILE}, cpp inplace_grad",
+                encoding_ms(inplace, x, args.repeats, TILE),
+            )
             add(
                 f"step proxy, {backend}, foreach Adam (torch default)",
                 step_proxy_ms(grid, x, args.repeats, fused_adam=False),
