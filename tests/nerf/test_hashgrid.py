@@ -174,3 +174,20 @@ def test_inplace_grad_accumulates_like_autograd(cpp, dtype):
             grid(x[tile]).backward(grad_out[tile])
     assert fused.table.grad is not None and fused.table.grad.abs().sum() > 0
     torch.testing.assert_close(fused.table.grad, plain.table.grad, rtol=1e-5, atol=1e-6)
+
+
+def test_auto_falls_back_to_reference_when_the_kernel_cannot_build(monkeypatch):
+    from dronecap.nerf import hashgrid
+
+    def no_compiler():
+        raise RuntimeError("no C++ compiler in this test")
+
+    monkeypatch.setattr(hashgrid, "load_extension", no_compiler)
+    x = edge_points(50)
+    grid = HashGrid(4, 2, 8, 4, 64, backend="auto")
+    with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler in this test"):
+        out = grid(x)
+    expected = hash_encode_reference(x, grid.table, grid.resolutions, grid.offsets, 8)
+    torch.testing.assert_close(out, expected)
+    with pytest.raises(RuntimeError, match="no C\\+\\+ compiler"):
+        HashGrid(4, 2, 8, 4, 64, backend="cpp")(x)
