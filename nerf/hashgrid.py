@@ -25,6 +25,7 @@ optimizer step to emulate pure low-precision storage, where updates below half a
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 import os
 import warnings
@@ -224,10 +225,22 @@ class HashGrid(torch.nn.Module):
         )
 
 
+def _cpu_tag() -> str:
+    """8 hex digits naming this CPU's instruction-set flags (builds use ``-march=native``)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return "generic"
+    flags = next((line for line in text.splitlines() if line.startswith("flags")), "")
+    return hashlib.sha256(flags.encode()).hexdigest()[:8]
+
+
 def extension_build_dir(name: str) -> Path:
-    """Where a compiled C++ kernel is cached: ``$XDG_CACHE_HOME/dronecap/torch_extensions/name``."""
+    """Where a compiled C++ kernel is cached:
+    ``$XDG_CACHE_HOME/dronecap/torch_extensions/<name>-<cpu tag>`` (``~/.cache`` by default),
+    one folder per CPU flavour so a shared home never loads a build for another CPU."""
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return cache / "dronecap" / "torch_extensions" / name
+    return cache / "dronecap" / "torch_extensions" / f"{name}-{_cpu_tag()}"
 
 
 _EXTENSIONS: dict[str, object] = {}
