@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     from dronecap.errors import InputError
 
     parser, module = build_parser(argv[0])
-    args = parser.parse_args(argv[1:])
+    args = parser.parse_intermixed_args(argv[1:])
     try:
         return int(module.run(args) or 0)
     except InputError as err:

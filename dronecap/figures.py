@@ -45,21 +45,24 @@ def _sfm(stage_dir: Path) -> str:
         return ""
     reg = rep.get("registration_rate")
     text = f"registered {reg:.0%}" if isinstance(reg, float) else ""
-    gt = rep.get("gt") or rep.get("accuracy") or {}
+    gt = rep.get("accuracy") or {}
     if "ate_percent" in gt:
         text += f", ATE {gt['ate_percent']:.2f}% of extent"
-    if "rot_err_median_deg" in gt:
-        text += f", rot {gt['rot_err_median_deg']:.2f}° median"
+    if "rot_median_deg" in gt:
+        text += f", rotation {gt['rot_median_deg']:.2f}° median"
     return text
 
 
 def _train(stage_dir: Path) -> str:
-    m = _json(_find(stage_dir, "metrics.json"))
-    text = f"PSNR {m['psnr']:.2f} dB, SSIM {m.get('ssim', float('nan')):.3f}" if "psnr" in m else ""
+    m = _json(_find(stage_dir, "metrics.json")).get("test", {})
+    text = f"PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}" if "psnr" in m else ""
     cost = _json(_find(stage_dir, "cost.json"))
-    verdict = cost.get("verdict") or cost.get("fits")
-    if verdict is not None:
-        text += f", GAP9: {verdict}"
+    verdicts = cost.get("verdicts", {})
+    if verdicts:
+        fits = all(v.get("fits") for k, v in verdicts.items() if k in ("l1", "l2", "l3"))
+        seconds = cost.get("latency", {}).get("train", 0.0)
+        took = f"{seconds / 60:.0f} min" if seconds >= 120 else f"{seconds:.1f} s"
+        text += f"; GAP9: {'fits' if fits else 'DOES NOT FIT'}, {took} to train"
     return text
 
 

@@ -60,4 +60,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     report = write_report(runner, results)
     print(f"\nreport: {report}")
+    for r in results:
+        pngs = sorted(runner.stage_dirs[r.id].rglob("*.png"))
+        if pngs:
+            print(f"{r.id}: {pngs[0].parent}/ ({len(pngs)} images)")
     return 1 if any(r.status == "failed" for r in results) else 0
