@@ -56,9 +56,7 @@ class SelectionParams:
         default=4.0,
         metadata={"help": "pixels of viewpoint change between kept frames (output frame)"},
     )
-    max_gap: int = field(
-        default=15, metadata={"help": "most source frames between two kept frames"}
-    )
+    max_gap: int = field(default=6, metadata={"help": "most source frames between two kept frames"})
     target: int | None = field(
         default=None,
         metadata={"help": "keep about this many frames (searches min_motion); None: off"},
