@@ -1,7 +1,7 @@
 """Ingest throughput (source frames/s) and simulator speed; optionally selection vs SfM success.
 
     .venv/bin/python benchmarks/ingest_speed.py            # speed tables (~1-2 min)
-    .venv/bin/python benchmarks/ingest_speed.py --sfm      # + kept frames vs SfM registration
+    .venv/bin/python benchmarks/ingest_speed.py --sfm      # + selection vs SfM accuracy (~15 min)
 
 Builds its own videos in a temporary folder: 600 frames of a textured scene panning and zooming
 (a smooth synthetic camera path), at 160x160 and 640x480, in mp4v (what phones and most tools
@@ -118,32 +118,20 @@ def time_simulator(frames: int, repeats: int) -> dict[str, float]:
     return out
 
 
-def sfm_tradeoff(targets: list[int], frames: int) -> list[tuple[int, str]]:
-    """Run ingest --target N then `dronecap sfm` on a simulated flight; returns (N, sfm line)."""
+def sfm_tradeoff(variants: list[list[str]], frames: int) -> list[tuple[str, str]]:
+    """Ingest a simulated flight with each option set, run `dronecap sfm --gt` on it; returns
+    (options, sfm summary) rows."""
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        dronecap = [sys.executable, "-m", "dronecap.cli"]
-        subprocess.run(
-            [*dronecap, "simulate", "--frames", str(frames), "--workdir", tmp], check=True
-        )
-        for n in targets:
-            subprocess.run(
-                [
-                    *dronecap,
-                    "ingest",
-                    str(work / "flight.mp4"),
-                    "--workdir",
-                    tmp,
-                    "--target",
-                    str(n),
-                ],
-                check=True,
-                capture_output=True,
-            )
+        cli = [sys.executable, "-m", "dronecap.cli"]
+        subprocess.run([*cli, "simulate", "--frames", str(frames), "--workdir", tmp], check=True)
+        for options in variants:
+            ingest_cmd = [*cli, "ingest", str(work / "flight.mp4"), "--workdir", tmp, *options]
+            kept = subprocess.run(ingest_cmd, check=True, capture_output=True, text=True).stdout
             t0 = time.perf_counter()
             r = subprocess.run(
-                [*dronecap, "sfm", "--workdir", tmp, "--gt", str(work / "flight.json")],
+                [*cli, "sfm", "--workdir", tmp, "--gt", str(work / "flight.json")],
                 capture_output=True,
                 text=True,
             )
@@ -151,7 +139,11 @@ def sfm_tradeoff(targets: list[int], frames: int) -> list[tuple[int, str]]:
             keys = ("frames registered", "vs ground truth", "error:")
             picked = [ln.strip() for ln in text if any(k in ln for k in keys)]
             summary = " / ".join(picked) if picked else f"exit {r.returncode}"
-            rows.append((n, f"{time.perf_counter() - t0:.0f} s: {summary}"))
+            kept_n = kept.split("kept ")[1].split(",")[0] if "kept " in kept else "?"
+            rows.append(
+                (" ".join(options), f"kept {kept_n}; {time.perf_counter() - t0:.0f} s: {summary}")
+            )
+            print(f"| {rows[-1][0]} | {rows[-1][1]} |", flush=True)
     return rows
 
 
@@ -215,14 +207,13 @@ def main() -> None:
     if args.sfm:
         lines += [
             "",
-            "## Kept frames vs SfM (simulated corridor, `ingest --target N` then `sfm --gt`)",
+            "## Selection vs SfM (simulated corridor, `ingest OPTIONS` then `sfm --gt`)",
             "",
-            "| target | sfm result |",
+            "| ingest options | sfm result |",
             "|---|---|",
         ]
-        for n, summary in sfm_tradeoff([60, 120, 200], args.frames):
-            lines.append(f"| {n} | {summary} |")
-            print(lines[-1], flush=True)
+        variants = [["--max-gap", "15"], ["--max-gap", "6"]]
+        lines += [f"| {o} | {r} |" for o, r in sfm_tradeoff(variants, args.frames)]
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text("\n".join(lines) + "\n")
     print(f"wrote {RESULTS}")
