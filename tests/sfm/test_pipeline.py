@@ -180,7 +180,11 @@ def test_pure_rotation_does_not_crash(lego_dir, tmp_path):
 
 @pytest.mark.slow
 def test_lego_orbit_through_ingest(lego_dir, tmp_path):
-    """80 lego views as an image folder -> `dronecap ingest` -> `dronecap sfm --gt`."""
+    """80 lego views as an image folder -> `dronecap ingest` -> `dronecap sfm --gt`.
+
+    Ingest's default selection keeps 21 of the 80 views and 16 of them register (76 %);
+    `--min-motion 2` keeps 40 and all register (ATE ~1.1 %).
+    """
     import cv2
 
     ds, gt = blender_flight(lego_dir, count=80)
@@ -192,7 +196,9 @@ def test_lego_orbit_through_ingest(lego_dir, tmp_path):
     k = ds.intrinsics
     intr = f"{k.fx},{k.fy},{k.cx},{k.cy}"
     work = ["--workdir", str(tmp_path)]
-    assert cli_main(["ingest", str(folder), "--intrinsics", intr, *work]) == 0
+    # white background: most pixels are clipped, which ingest would call over-exposed
+    ingest = ["ingest", str(folder), "--intrinsics", intr, "--max-clipped", "1.0", "--min-motion", "2", *work]
+    assert cli_main(ingest) == 0
     code = cli_main(["sfm", "--gt", str(tmp_path / "poses.json"), "--quiet", *work])
     assert code == 0
     report = json.loads((tmp_path / "sfm" / "report.json").read_text())
