@@ -197,7 +197,17 @@ def test_lego_orbit_through_ingest(lego_dir, tmp_path):
     intr = f"{k.fx},{k.fy},{k.cx},{k.cy}"
     work = ["--workdir", str(tmp_path)]
     # white background: most pixels are clipped, which ingest would call over-exposed
-    ingest = ["ingest", str(folder), "--intrinsics", intr, "--max-clipped", "1.0", "--min-motion", "2", *work]
+    ingest = [
+        "ingest",
+        str(folder),
+        "--intrinsics",
+        intr,
+        "--max-clipped",
+        "1.0",
+        "--min-motion",
+        "2",
+        *work,
+    ]
     assert cli_main(ingest) == 0
     code = cli_main(["sfm", "--gt", str(tmp_path / "poses.json"), "--quiet", *work])
     assert code == 0
