@@ -61,6 +61,7 @@ def main() -> None:
         help="run only the federations, only the baselines (both may run at once), or "
         "nothing: report what --work holds",
     )
+    ap.add_argument("--baseline-names", nargs="+", help="these baselines, in this order")
     a = ap.parse_args()
 
     a.work.mkdir(parents=True, exist_ok=True)
@@ -91,7 +92,7 @@ def main() -> None:
         if a.only != "report" and a.only != "baselines":
             fed.run_simulated(run)
         if a.only != "report" and a.only != "federated" and dtype == "fp16":
-            run_baselines(run, s, curve_marks=False)
+            run_baselines(run, s, curve_marks=False, names=a.baseline_names)
         if (run / fed.FINAL).exists() and a.only != "report" and dtype == "fp16":
             _fp16_cost(run, s)
         if (run / "baselines" / "curves.json").exists():

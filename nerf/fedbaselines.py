@@ -98,10 +98,13 @@ def run_baseline(
     return curve
 
 
-def run_baselines(run_dir: Path, s: FedSettings, curve_marks: bool = True) -> dict:
-    """Run every baseline (centralized, then each drone alone); returns name -> curve."""
+def run_baselines(
+    run_dir: Path, s: FedSettings, curve_marks: bool = True, names: list[str] | None = None
+) -> dict:
+    """Run the baselines ``names`` in that order (default: centralized, then each drone alone);
+    returns name -> curve."""
     sets = baseline_trainsets(s)
-    return {n: run_baseline(run_dir, s, n, ds, curve_marks) for n, ds in sets.items()}
+    return {n: run_baseline(run_dir, s, n, sets[n], curve_marks) for n in (names or list(sets))}
 
 
 def merge_curves(run_dir: Path, s: FedSettings) -> None:
