@@ -178,10 +178,13 @@ def _greedy(tables: dict[str, np.ndarray], quality: np.ndarray, p: SelectionPara
     if len(cand) == 0:
         return Selection(keep, reason, p.min_motion, gaps)
     reason[cand] = REDUNDANT
-    # Start with the sharpest usable frame before the camera has moved min_motion.
-    first = cand[
-        (travel[cand] - travel[cand[0]] < p.min_motion) & (src[cand] - src[cand[0]] <= p.max_gap)
-    ]
+    # Start with the sharpest usable frame before the camera has moved min_motion (the first
+    # usable frame itself always qualifies, so min_motion = 0 keeps every usable frame).
+    early = (travel[cand] - travel[cand[0]] < p.min_motion) & (
+        src[cand] - src[cand[0]] <= p.max_gap
+    )
+    early[0] = True
+    first = cand[early]
     k = int(first[np.argmax(sharp[first])])
     keep[k], reason[k] = True, KEPT
     pos = int(np.searchsorted(cand, k)) + 1

@@ -103,3 +103,9 @@ def test_frozen_frames_and_legend():
     assert (sel.reason[5:9] == FROZEN).all()
     assert REASONS[FROZEN] == "frozen" and REASONS[KEPT] == "kept"
     assert sum(sel.counts().values()) == 20
+
+
+def test_zero_min_motion_keeps_every_usable_frame() -> None:
+    """min_motion = 0 asks for every usable frame; it used to crash on an empty start pool."""
+    sel = select_frames(tables(np.full(12, 1.0)), SelectionParams(min_motion=0.0))
+    assert sel.keep.all()
