@@ -134,7 +134,7 @@ def report(args: argparse.Namespace) -> None:
     import matplotlib.pyplot as plt
 
     runs = [json.loads(p.read_text()) for p in sorted(RUNS.glob("*.json"))]
-    unfinished = [r["name"] for r in runs if not r.get("finished", True)]
+    unfinished = [r for r in runs if not r.get("finished", True)]
     runs = [r for r in runs if r.get("finished", True)]
     groups: dict[str, list[dict]] = {}
     for r in runs:
@@ -173,12 +173,24 @@ def report(args: argparse.Namespace) -> None:
     if unfinished:
         lines += [
             "",
-            f"Runs that had not finished when this table was made: {', '.join(unfinished)}.",
+            "Runs stopped before their last step (time budget); PSNR on every 10th test view "
+            "(20 views) at the last evaluated step:",
+            "",
+            "| run | step | train s | PSNR dB (20 views) |",
+            "|---|---:|---:|---:|",
         ]
+        for r in unfinished:
+            c = r["curve"][-1]
+            lines.append(f"| {r['name']} | {c['step']} | {c['seconds']:.0f} | {c['psnr']:.2f} |")
     text = "\n".join(lines) + "\n"
     print(text)
     (RESULTS / "train_accuracy.md").write_text(text)
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for r in unfinished:
+        psnr = [c["psnr"] for c in r["curve"]]
+        label = f"{r['name']} (stopped)"
+        ax[0].plot([c["seconds"] for c in r["curve"]], psnr, "x--", label=label)
+        ax[1].plot([c["step"] for c in r["curve"]], psnr, "x--", label=label)
     for key, rs in groups.items():
         r0 = rs[0]
         steps = [c["step"] for c in r0["curve"]]
