@@ -105,7 +105,7 @@ def main() -> None:
         rounds = doc["rounds"]
         final = {k: c[-1] for k, c in doc.get("baselines", {}).items()}
         singles = {k: v for k, v in final.items() if k.startswith("client_")}
-        best = max(singles, key=lambda k: singles[k]["psnr"]) if len(singles) == 4 else None
+        best = max(singles, key=lambda k: singles[k]["psnr"]) if singles else None
         r1 = rounds[min(1, len(rounds) - 1)]
         cost = run / "fp16_cost.json"
         rows.append(
@@ -177,7 +177,11 @@ def _report(rows: list[dict], a: argparse.Namespace) -> str:
         done = "" if r["rounds_done"] == a.rounds else f" (after round {r['rounds_done']})"
         lines.append(
             f"| {r['scheme']} | {r['transfer']} | {f['psnr']:.2f} dB / {f['ssim']:.3f}{done} | "
-            + (f"{b['psnr']:.2f} dB ({b['name']}) | " if b else "not run | ")
+            + (
+                f"{b['psnr']:.2f} dB ({b['name']}, best of {len(r['singles'])}/4) | "
+                if b
+                else "not run | "
+            )
             + (f"{c['psnr']:.2f} dB | " if c else "not run | ")
             + (f"{f['psnr'] - b['psnr']:+.2f} dB | " if b else "- | ")
             + (f"{c['psnr'] - f['psnr']:+.2f} dB | " if c else "- | ")
