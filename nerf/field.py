@@ -129,8 +129,13 @@ class Field(nn.Module):
             color [N, C] in (0, 1), sigma [N] per scene unit.
         """
         sigma, geo = self.geometry(points)
+        return self.color(geo, dirs), sigma
+
+    def color(self, geo: Tensor, dirs: Tensor) -> Tensor:
+        """Colour [N, C] in (0, 1) from geometry features [N, geo_features] and unit view
+        directions [N, 3]."""
         x = torch.cat([geo, round_to(sh_encode(dirs, self.sh_degree), self.dtype)], -1)
-        return torch.sigmoid(self._run(self.color_mlp, x)), sigma
+        return torch.sigmoid(self._run(self.color_mlp, x))
 
     def mlp_parameters(self) -> list[nn.Parameter]:
         """The MLP weights (the ones that get L2 weight decay)."""

@@ -35,8 +35,8 @@ from .rays import camera_rays, ray_aabb
 from .volrend import accumulate, packed_weights, render_packed
 
 MAX_BAD_STEPS = 20  # consecutive non-finite steps before training stops
-RENDER_RAYS = 8192  # rays per chunk when rendering a view
-RENDER_ROUND = 16  # candidate steps per ray per marching round when rendering
+RENDER_RAYS = 1 << 15  # rays per chunk when rendering a view
+RENDER_ROUND = 16  # samples per ray evaluated per round when rendering
 
 
 class TrainingDiverged(InputError):
@@ -462,14 +462,17 @@ class Trainer:
         return torch.cat(out).reshape(h, w, -1).cpu().numpy().astype(np.float32)
 
     @torch.no_grad()
-    def render_rays(self, origins, dirs, background, min_transmittance: float = 1e-4):
-        """Colours [R, C] of rays [R, 3] (no grad), marching in rounds of ``RENDER_ROUND``
-        candidate steps and stopping rays whose transmittance fell below ``min_transmittance``
-        (early termination: what lies behind an opaque surface is not evaluated).
+    def render_rays(
+        self, origins, dirs, background, min_transmittance: float = 1e-4, min_weight: float = 1e-5
+    ):
+        """Colours [R, C] of rays [R, 3] (no grad), evaluating ``RENDER_ROUND`` samples per ray
+        per round and stopping rays whose transmittance fell below ``min_transmittance``
+        (early termination: what lies behind an opaque surface is not evaluated); the colour
+        MLP runs only for samples of weight above ``min_weight``.
 
         ``background`` is [C] or [R, C]. Samples sit where :meth:`render` without early
         termination would put them, so the result differs only by the dropped tail
-        (< ``min_transmittance`` of a colour in [0, 1]).
+        (< ``min_transmittance``) and the skipped weights (< ``min_weight`` each).
         """
         n, c = origins.shape[0], self.scene.channels
         t_near, t_far, hit = ray_aabb(origins, dirs, self.aabb)
@@ -477,30 +480,37 @@ class Trainer:
         trans = torch.ones(n, device=self.device)
         alive = hit.nonzero().squeeze(1)
         t0 = t_near.clone()
+        limit = self.cfg.max_samples_per_ray
         while alive.numel():
+            o, d, m = origins[alive], dirs[alive], alive.numel()
             s = self.march(
-                origins[alive],
-                dirs[alive],
-                t0[alive],
-                t_far[alive],
-                self.step_size,
-                self.grid,
-                self.aabb,
-                RENDER_ROUND,
+                o, d, t0[alive], t_far[alive], self.step_size, self.grid, self.aabb, limit
             )
-            if s.n:
-                ri = s.ray_indices
-                pts = (
-                    origins[alive][ri] + dirs[alive][ri] * (0.5 * (s.t_starts + s.t_ends))[:, None]
-                )
-                colors, sigmas = self.field(pts, dirs[alive][ri])
-                tau = sigmas * (s.t_ends - s.t_starts)
-                w, _ = packed_weights(tau, ri, alive.numel())
-                w = w * trans[alive][ri]
-                rgb[alive] += accumulate(w[:, None] * colors, ri, alive.numel())
-                trans[alive] = trans[alive] * torch.exp(-accumulate(tau, ri, alive.numel()))
-            t0[alive] += RENDER_ROUND * self.step_size
-            alive = alive[(trans[alive] > min_transmittance) & (t0[alive] < t_far[alive])]
+            if s.n == 0:
+                break
+            # evaluate only the first RENDER_ROUND samples of each ray; resume at the next one
+            rank = (
+                torch.arange(s.n, device=self.device)
+                - (torch.cumsum(s.counts, 0) - s.counts)[s.ray_indices]
+            )
+            nxt = (rank == RENDER_ROUND).nonzero().squeeze(1)
+            t_next = t_far[alive].clone()
+            t_next[s.ray_indices[nxt]] = s.t_starts[nxt]
+            take = (rank < RENDER_ROUND).nonzero().squeeze(1)
+            ri, t_s, t_e = s.ray_indices[take], s.t_starts[take], s.t_ends[take]
+            di = d[ri]
+            sigmas, geo = self.field.geometry(o[ri] + di * (0.5 * (t_s + t_e))[:, None])
+            tau = sigmas * (t_e - t_s)
+            tr_alive = trans[alive]
+            w, _ = packed_weights(tau, ri, m)
+            w = w * tr_alive[ri]
+            use = (w > min_weight).nonzero().squeeze(1)  # colour only where it shows
+            colors = self.field.color(geo[use], di[use])
+            rgb.index_add_(0, alive[ri[use]], w[use, None] * colors)
+            tr_alive = tr_alive * torch.exp(-accumulate(tau, ri, m))
+            trans[alive] = tr_alive
+            t0[alive] = t_next
+            alive = alive[(tr_alive > min_transmittance) & (t_next < t_far[alive])]
         bg = background.expand(n, c) if background.ndim == 1 else background
         return (rgb + trans[:, None] * bg).clamp(0, 1)
 
