@@ -177,6 +177,14 @@ def mapper_options(opts: SfmOptions, known_camera: bool, relaxed: bool = False) 
     m.mapper.abs_pose_refine_focal_length = not known_camera
     m.mapper.abs_pose_refine_extra_params = not known_camera
     m.mapper.random_seed = opts.seed
+    m.mapper.init_max_error = opts.max_reproj_error
+    m.mapper.filter_max_reproj_error = opts.max_reproj_error
+    m.mapper.abs_pose_max_error = opts.abs_pose_max_error
+    m.triangulation.merge_max_reproj_error = opts.max_reproj_error
+    m.triangulation.complete_max_reproj_error = opts.max_reproj_error
+    m.triangulation.create_max_angle_error = opts.tri_max_angle_error
+    m.triangulation.continue_max_angle_error = opts.tri_max_angle_error
+    m.triangulation.re_max_angle_error = 2.0 * opts.tri_max_angle_error
     if relaxed:
         m.multiple_models = False
         m.mapper.abs_pose_min_num_inliers = max(8, opts.abs_pose_min_num_inliers // 2)

@@ -32,6 +32,13 @@ class SfmOptions:
     max_h_inlier_ratio: float = 0.8  # pairs whose homography explains more are called planar
     # --- mapping ---
     min_num_matches: int = 15  # verified matches for a pair to count in mapping
+    # Pixel thresholds sized for 160x160 frames. COLMAP's defaults (4 px reprojection, 12 px
+    # absolute pose, 2 deg triangulation) are sized for megapixel images; on a 160-px frame they
+    # are 2-5 % of the image, admit wrong 2D-3D matches and let a model started from a
+    # near-planar pair settle in a bent solution (simulated corridor: ATE 10 % -> 0.1 %).
+    max_reproj_error: float = 1.5  # px: point filtering, track merging/completion, init pair
+    abs_pose_max_error: float = 2.0  # px: RANSAC threshold when registering a frame (PnP)
+    tri_max_angle_error: float = 1.0  # deg: triangulation; re-triangulation gets twice this
     init_min_num_inliers: int = 50  # initial pair; COLMAP relaxes this itself if it fails
     abs_pose_min_num_inliers: int = 15  # 2D-3D inliers needed to register a frame
     max_models: int = 10  # COLMAP keeps starting new models up to this many
@@ -54,6 +61,8 @@ class SfmOptions:
             raise ValueError(f"min_registration must be in [0, 1], got {self.min_registration}")
         if self.loop_period < 1 or self.loop_num_images < 1 or self.visual_words < 16:
             raise ValueError("loop_period and loop_num_images must be >= 1, visual_words >= 16")
+        if min(self.max_reproj_error, self.abs_pose_max_error, self.tri_max_angle_error) <= 0:
+            raise ValueError("reprojection, absolute-pose and angle thresholds must be > 0")
 
     def resolved_matcher(self, n_frames: int) -> str:
         """ "sequential" or "exhaustive" for a flight of ``n_frames`` frames."""
