@@ -42,7 +42,7 @@ class SfmOptions:
     init_min_num_inliers: int = 50  # initial pair; COLMAP relaxes this itself if it fails
     abs_pose_min_num_inliers: int = 15  # 2D-3D inliers needed to register a frame
     max_models: int = 10  # COLMAP keeps starting new models up to this many
-    init_trials: int = 1  # 2: also map from an early initial pair, keep the better model
+    init_trials: int = 1  # 2: also map from COLMAP's own initial pair, keep the better model
     extend: bool = True  # resume mapping from the largest model to absorb the others
     seed: int = 0  # random seed of the mapper (deterministic runs)
     num_threads: int = -1  # -1: all cores

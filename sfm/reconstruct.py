@@ -21,7 +21,7 @@ import numpy as np
 from dronecap.datasets.format import Intrinsics
 from dronecap.sfm.colmap_steps import (
     MIN_KEYPOINTS,
-    early_init_pair,
+    epipolar_init_pair,
     extract,
     incremental_map,
     match,
@@ -99,13 +99,15 @@ def colmap_job(
 
     known = camera is not None
     t = phase("map")
-    found = incremental_map(db, images, root / "models", opts, known, on_register)
+    pair = epipolar_init_pair(db)
+    found = {}
+    if pair is not None:  # start from a pair with parallax (see epipolar_init_pair)
+        found = incremental_map(db, images, root / "models", opts, known, on_register, None, pair)
     times["map"] = time.perf_counter() - t
-    pair = early_init_pair(db) if opts.init_trials > 1 else None
-    if pair is not None:
-        t = phase("map (2nd start)")
-        alt = incremental_map(db, images, root / "models_alt", opts, known, on_register, None, pair)
-        times["map_2nd_start"] = time.perf_counter() - t
+    if not found or opts.init_trials > 1:  # COLMAP's own choice: fallback, or a second start
+        t = phase("map (colmap start)")
+        alt = incremental_map(db, images, root / "models_alt", opts, known, on_register)
+        times["map_colmap_start"] = time.perf_counter() - t
         found.update(alt)
     out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
     if not found:
