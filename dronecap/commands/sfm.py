@@ -18,7 +18,7 @@ _FLAGS = {
     "--loop-images": ("loop_num_images", int, "loop detection: frames retrieved per query"),
     "--min-registration": ("min_registration", float, "fail below this registered fraction"),
     "--seed": ("seed", int, "mapper random seed"),
-    "--init-trials": ("init_trials", int, "2: also map from an early pair, keep the better"),
+    "--init-trials": ("init_trials", int, "2: also map from COLMAP's initial pair; keep best"),
     "--threads": ("num_threads", int, "COLMAP threads (-1: all cores)"),
 }
 
