@@ -83,6 +83,21 @@ FIGURES: dict[str, Callable[[Path], str]] = {
 }
 
 
+RESULT_FILES = (
+    "report.md",
+    "report.json",
+    "points.ply",
+    "metrics.json",
+    "compare.png",
+    "rounds.json",
+)
+
+
+def results_of(stage_dir: Path) -> list[Path]:
+    """The files of a stage a person looks at first (reports, metrics, comparison images)."""
+    return [p for name in RESULT_FILES for p in sorted(stage_dir.rglob(name))[:1]]
+
+
 def key_figure(command: str, stage_dir: Path) -> str:
     """One short text with the stage's headline number ("" when there is none)."""
     reader = FIGURES.get(command)

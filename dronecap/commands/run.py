@@ -40,6 +40,7 @@ def _pipelines_file(args: argparse.Namespace) -> Path:
 def run(args: argparse.Namespace) -> int:
     """Validate the pipeline, run it, print the summary and write report.md."""
     from dronecap.cli import COMMANDS, build_parser
+    from dronecap.figures import results_of
     from dronecap.pipeline import Runner, summary_table, write_report
     from dronecap.pipeline_spec import build_pipeline, commands_used, load_specs
 
@@ -61,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     report = write_report(runner, results)
     print(f"\nreport: {report}")
     for r in results:
-        pngs = sorted(runner.stage_dirs[r.id].rglob("*.png"))
-        if pngs:
-            print(f"{r.id}: {pngs[0].parent}/ ({len(pngs)} images)")
+        found = results_of(runner.stage_dirs[r.id])
+        if found:
+            print(f"{r.id}: {', '.join(str(p) for p in found)}")
     return 1 if any(r.status == "failed" for r in results) else 0
