@@ -96,9 +96,16 @@ class Field(nn.Module):
         self.register_buffer("aabb_size", (a[1] - a[0]).clone(), persistent=False)
 
     def _run(self, mlp: nn.Sequential, x: Tensor) -> Tensor:
-        """Apply ``mlp`` rounding every activation to the storage dtype (GAP9 emulation)."""
+        """Apply ``mlp`` rounding every activation to the storage dtype (GAP9 emulation).
+
+        Without autograd the ReLUs work in place (a ReLU of a rounded value needs no rounding).
+        """
+        inplace = not torch.is_grad_enabled()
         for layer in mlp:
-            x = round_to(layer(x), self.dtype)
+            if inplace and isinstance(layer, nn.ReLU):
+                x = torch.relu_(x)
+            else:
+                x = round_to(layer(x), self.dtype)
         return x
 
     def geometry(self, points: Tensor) -> tuple[Tensor, Tensor]:

@@ -37,6 +37,8 @@ from .volrend import accumulate, packed_weights, render_packed
 MAX_BAD_STEPS = 20  # consecutive non-finite steps before training stops
 RENDER_RAYS = 1 << 15  # rays per chunk when rendering a view
 RENDER_ROUND = 16  # samples per ray evaluated per round when rendering
+RENDER_MARCH = 64  # candidates marched per ray per round when rendering (the rest: later)
+RENDER_FIELD_CHUNK = 1 << 14  # samples per field call when rendering (activations stay in cache)
 
 
 class TrainingDiverged(InputError):
@@ -481,36 +483,48 @@ class Trainer:
         alive = hit.nonzero().squeeze(1)
         t0 = t_near.clone()
         limit = self.cfg.max_samples_per_ray
+        cand = min(limit, RENDER_MARCH)
         while alive.numel():
             o, d, m = origins[alive], dirs[alive], alive.numel()
-            s = self.march(
-                o, d, t0[alive], t_far[alive], self.step_size, self.grid, self.aabb, limit
-            )
+            t_start, t_end = t0[alive], t_far[alive]
+            s = self.march(o, d, t_start, t_end, self.step_size, self.grid, self.aabb, cand)
+            # rays cut at `cand` candidates resume at the next candidate; others end at t_far
+            t_next = t_end.clone()
+            if cand < limit:
+                cut = torch.ceil((t_end - t_start).clamp_min(0.0) / self.step_size) > cand
+                t_next[cut] = t_start[cut] + cand * self.step_size
             if s.n == 0:
-                break
+                t0[alive] = t_next
+                alive = alive[t_next < t_end]
+                continue
             # evaluate only the first RENDER_ROUND samples of each ray; resume at the next one
             rank = (
                 torch.arange(s.n, device=self.device)
                 - (torch.cumsum(s.counts, 0) - s.counts)[s.ray_indices]
             )
             nxt = (rank == RENDER_ROUND).nonzero().squeeze(1)
-            t_next = t_far[alive].clone()
             t_next[s.ray_indices[nxt]] = s.t_starts[nxt]
             take = (rank < RENDER_ROUND).nonzero().squeeze(1)
             ri, t_s, t_e = s.ray_indices[take], s.t_starts[take], s.t_ends[take]
             di = d[ri]
-            sigmas, geo = self.field.geometry(o[ri] + di * (0.5 * (t_s + t_e))[:, None])
+            pts = o[ri] + di * (0.5 * (t_s + t_e))[:, None]
+            parts = [self.field.geometry(p) for p in pts.split(RENDER_FIELD_CHUNK)]
+            sigmas, geo = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
             tau = sigmas * (t_e - t_s)
             tr_alive = trans[alive]
             w, _ = packed_weights(tau, ri, m)
             w = w * tr_alive[ri]
             use = (w > min_weight).nonzero().squeeze(1)  # colour only where it shows
-            colors = self.field.color(geo[use], di[use])
+            gu, du, ch = geo[use], di[use], RENDER_FIELD_CHUNK
+            colors = torch.cat(
+                [self.field.color(gu[a : a + ch], du[a : a + ch]) for a in range(0, len(use), ch)]
+                or [gu.new_zeros(0, c)]
+            )
             rgb.index_add_(0, alive[ri[use]], w[use, None] * colors)
             tr_alive = tr_alive * torch.exp(-accumulate(tau, ri, m))
             trans[alive] = tr_alive
             t0[alive] = t_next
-            alive = alive[(tr_alive > min_transmittance) & (t_next < t_far[alive])]
+            alive = alive[(tr_alive > min_transmittance) & (t_next < t_end)]
         bg = background.expand(n, c) if background.ndim == 1 else background
         return (rgb + trans[:, None] * bg).clamp(0, 1)
 

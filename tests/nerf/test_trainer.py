@@ -139,3 +139,30 @@ def test_gray_head_has_one_channel(cube_gray_h5):
     img = tr.render(ds.poses[0], ds.intrinsics)
     assert img.shape == (24, 24, 1) and img.dtype == np.float32
     assert tr.field.color_mlp[-1].out_features == 1
+
+
+def test_render_rays_matches_packed_reference(cube_rgb, monkeypatch):
+    """Early termination in rounds (rays cut at a few candidates per round and resumed) gives
+    the colours of the plain packed renderer over every sample, up to the dropped tail."""
+    import dronecap.nerf.trainer as trainer_mod
+    from dronecap.nerf.rays import camera_rays, ray_aabb
+
+    tr = Trainer(_cfg(), cube_rgb)
+    tr.train(40, progress=False)
+    k = cube_rgb.intrinsics
+    vv, uu = torch.meshgrid(torch.arange(k.height), torch.arange(k.width), indexing="ij")
+    pose = torch.as_tensor(cube_rgb.poses[0], dtype=torch.float32)
+    origins, dirs = camera_rays(pose, k.fx, k.fy, k.cx, k.cy, uu.reshape(-1), vv.reshape(-1))
+    bg = torch.tensor([0.2, 0.5, 0.8])
+    with torch.no_grad():
+        t_near, t_far, _ = ray_aabb(origins, dirs, tr.aabb)
+        s = tr.march(origins, dirs, t_near, t_far, tr.step_size, tr.grid, tr.aabb, 1 << 20)
+        ref = tr._render_rays(origins, dirs, s, bg).clamp(0, 1)
+    assert s.n > 0 and int(s.counts.max()) > 8  # some rays need several rounds
+    default = tr.render_rays(origins, dirs, bg)
+    monkeypatch.setattr(trainer_mod, "RENDER_MARCH", 8)  # 256 steps per diagonal: many cuts
+    monkeypatch.setattr(trainer_mod, "RENDER_ROUND", 3)
+    small = tr.render_rays(origins, dirs, bg)
+    torch.testing.assert_close(default, ref, atol=1e-3, rtol=0)
+    torch.testing.assert_close(small, ref, atol=1e-3, rtol=0)
+    torch.testing.assert_close(small, default, atol=1e-4, rtol=0)
