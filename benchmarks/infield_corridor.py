@@ -28,9 +28,10 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--steps", type=int, default=10_000)
     ap.add_argument("--work", type=Path, default=Path("/tmp/dronecap-infield"))
+    ap.add_argument("overrides", nargs="*", help="more pipeline overrides, e.g. train.grid_res=64")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    overrides = [f"frames={args.frames}", f"steps={args.steps}"]
+    overrides = [f"frames={args.frames}", f"steps={args.steps}", *args.overrides]
     code = cli.main(["run", "demo", *overrides, "--until", "train", "--workdir", str(args.work)])
     if code != 0:
         raise SystemExit(code)
@@ -42,7 +43,7 @@ def main() -> None:
         "# Simulated in-field corridor, full length",
         "",
         f"Command: `.venv/bin/python benchmarks/infield_corridor.py --frames {args.frames}"
-        f" --steps {args.steps}` (pipeline `demo` with those overrides; gray head, preset"
+        f" --steps {args.steps} {' '.join(args.overrides)}` (pipeline `demo`; gray head, preset"
         " tiny-dronerf, every 8th kept frame held out for test).",
         "",
         "| figure | value | paper (real corridor) |",
