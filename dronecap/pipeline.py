@@ -129,13 +129,13 @@ class Runner:
         return argv, hashes, cache_key(stage.command, argv, hashes)
 
     def _why(
-        self, stage: Stage, stamp: dict[str, Any] | None, argv: list[str], hashes: dict
+        self, stage: Stage, stamp: dict[str, Any] | None, argv: list[str], hashes: dict, key: str
     ) -> str:
         if stage.id in self.force:
             return "forced"
         if stamp is None:
             return "no previous output"
-        if stamp.get("status") != "done":
+        if stamp.get("status") != "done" and stamp.get("key") == key:
             return "previous run did not finish (resuming)"
         if stamp.get("argv") != argv:
             return f"parameters changed: {' '.join(stamp.get('argv', []))} -> {' '.join(argv)}"
@@ -161,7 +161,7 @@ class Runner:
                 upstream_runs.add(stage.id)
                 continue
             argv, hashes, key = self._plan(stage)
-            why = self._why(stage, stamp, argv, hashes)
+            why = self._why(stage, stamp, argv, hashes, key)
             if i < self.first:
                 if why != "up to date":
                     raise InputError(
