@@ -135,8 +135,10 @@ class Runner:
             return "forced"
         if stamp is None:
             return "no previous output"
-        if stamp.get("status") != "done" and stamp.get("key") == key:
-            return "previous run did not finish (resuming)"
+        if stamp.get("status") != "done":
+            if stamp.get("key") == key:
+                return "previous run did not finish (resuming)"
+            return "previous run did not finish, with other inputs (starting over)"
         if stamp.get("argv") != argv:
             return f"parameters changed: {' '.join(stamp.get('argv', []))} -> {' '.join(argv)}"
         changed = [p for p, h in hashes.items() if stamp.get("inputs", {}).get(p) != h]
