@@ -253,18 +253,27 @@ def build_extension(name: str, source: str, extra_cflags: Sequence[str] = ()):
     Raises whatever the compiler or loader raises when the kernel cannot be built.
     """
     if name not in _EXTENSIONS:
+        import fcntl  # noqa: PLC0415
+
         from torch.utils import cpp_extension  # noqa: PLC0415
 
         build_dir = extension_build_dir(name)
         build_dir.mkdir(parents=True, exist_ok=True)
-        _EXTENSIONS[name] = cpp_extension.load(
-            name=f"dronecap_{name}",
-            sources=[str(Path(__file__).parent / "csrc" / source)],
-            extra_cflags=["-O3", "-march=native", "-fopenmp", *extra_cflags],
-            extra_ldflags=["-fopenmp"],
-            build_directory=str(build_dir),
-            verbose=False,
-        )
+        # torch marks a build in progress with a plain `lock` file and waits forever for it to
+        # go away; a build killed mid-way (Ctrl-C, a killed test run) leaves it behind and every
+        # later process hangs. Our own flock is released by the kernel when its holder dies, so
+        # while we hold it no other dronecap process is building and any `lock` file is stale.
+        with open(build_dir / ".dronecap-build.lock", "w") as guard:
+            fcntl.flock(guard, fcntl.LOCK_EX)
+            (build_dir / "lock").unlink(missing_ok=True)
+            _EXTENSIONS[name] = cpp_extension.load(
+                name=f"dronecap_{name}",
+                sources=[str(Path(__file__).parent / "csrc" / source)],
+                extra_cflags=["-O3", "-march=native", "-fopenmp", *extra_cflags],
+                extra_ldflags=["-fopenmp"],
+                build_directory=str(build_dir),
+                verbose=False,
+            )
     return _EXTENSIONS[name]
 
 

@@ -191,3 +191,19 @@ def test_auto_falls_back_to_reference_when_the_kernel_cannot_build(monkeypatch):
     torch.testing.assert_close(out, expected)
     with pytest.raises(RuntimeError, match="no C\\+\\+ compiler"):
         HashGrid(4, 2, 8, 4, 64, backend="cpp")(x)
+
+
+def test_stale_torch_build_lock_does_not_hang() -> None:
+    """A build killed mid-way leaves torch's `lock` file; the next load must not wait forever."""
+    import subprocess
+    import sys
+
+    from dronecap.nerf.hashgrid import extension_build_dir, load_extension
+
+    load_extension()  # built (or loaded from the cache) in this process
+    lock = extension_build_dir("hashgrid") / "lock"
+    lock.touch()
+    code = "from dronecap.nerf.hashgrid import load_extension; load_extension()"
+    done = subprocess.run([sys.executable, "-c", code], timeout=300, capture_output=True)
+    assert done.returncode == 0, done.stderr.decode()[-500:]
+    assert not lock.exists()
