@@ -21,6 +21,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+import torch
 from dronecap.datasets.blender import import_blender
 from dronecap.datasets.shard import shard_dataset
 from dronecap.nerf import federated as fed
@@ -29,13 +30,15 @@ from dronecap.nerf.fedbaselines import merge_curves, run_baselines
 from dronecap.nerf.fedplot import plot_runs
 from dronecap.nerf.trainer import Trainer
 
+from dronecap.files import atomic_output
+
 REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
 RESULTS = REPO / "benchmarks" / "results"
 # tiny-dronerf's model (what is exchanged) unchanged; training scaled to this shared 2-core CPU:
-# a 64^3 grid with a short warm-up (a full 128^3 grid update costs seconds per step here), the
-# finest level at 512 cells (the pixel footprint at 160 px), half the samples per step.
-MACHINE = dict(grid_res=64, grid_warmup=16, n_max=512, batch_samples=4096)
+# a 64^3 grid with a short warm-up (a full 128^3 grid update costs seconds per step here) and
+# the finest level at 512 cells (the pixel footprint at 160 px).
+MACHINE = dict(grid_res=64, grid_warmup=16, n_max=512)
 
 
 def main() -> None:
@@ -46,8 +49,15 @@ def main() -> None:
     ap.add_argument("--local-steps", type=int, default=100)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument(
-        "--eval-views", type=int, default=5, help="test views (evenly spaced) of every score"
+        "--eval-views", type=int, default=20, help="test views (evenly spaced) of the curves"
     )
+    ap.add_argument(
+        "--final-views",
+        type=int,
+        default=0,
+        help="test views of the final scores in the table (default 0: all 200)",
+    )
+    ap.add_argument("--compress", action="store_true", help="lossless shuffle+deflate transfer")
     ap.add_argument("--schemes", nargs="+", default=["iid", "sector"])
     ap.add_argument(
         "--fp32-run",
@@ -63,6 +73,7 @@ def main() -> None:
     )
     ap.add_argument("--baseline-names", nargs="+", help="these baselines, in this order")
     a = ap.parse_args()
+    torch.set_num_threads(1)  # Ray gives each drone one CPU; the baselines run on one too
 
     a.work.mkdir(parents=True, exist_ok=True)
     lego = a.work / "lego.h5"
@@ -85,6 +96,7 @@ def main() -> None:
             local_steps=a.local_steps,
             rounds=a.rounds,
             transfer_dtype=dtype,
+            compress=a.compress,
             eval_views=a.eval_views,
         )
         run.mkdir(parents=True, exist_ok=True)
@@ -103,7 +115,7 @@ def main() -> None:
         if dtype == "fp16":
             panels[f"{scheme.upper()} (4 drones x 25 images)"] = doc
         rounds = doc["rounds"]
-        final = {k: c[-1] for k, c in doc.get("baselines", {}).items()}
+        final = _final_scores(run, s, a.final_views, score=a.only != "report")
         singles = {k: v for k, v in final.items() if k.startswith("client_")}
         best = max(singles, key=lambda k: singles[k]["psnr"]) if singles else None
         r1 = rounds[min(1, len(rounds) - 1)]
@@ -113,7 +125,7 @@ def main() -> None:
                 "scheme": scheme,
                 "transfer": dtype,
                 "rounds_done": rounds[-1]["round"],
-                "federated": {"psnr": rounds[-1]["psnr"], "ssim": rounds[-1]["ssim"]},
+                "federated": final.get("federated"),
                 "centralized": final.get("centralized"),
                 "best_single": best and {"name": best, **singles[best]},
                 "singles": singles,
@@ -131,6 +143,40 @@ def main() -> None:
     (RESULTS / "federated_lego.md").write_text(report)
     (a.work / "summary.json").write_text(json.dumps(rows, indent=1))
     print(report)
+
+
+def _final_file(run: Path, views: int) -> Path:
+    return run / f"final_scores_{views or 'all'}.json"
+
+
+def _final_scores(run: Path, s: fed.FedSettings, views: int, score: bool) -> dict[str, dict]:
+    """name -> {"psnr", "ssim", "views"} of every finished model of ``run`` (the federated
+    global model, each baseline at the full step budget) on ``views`` test views (0: all),
+    cached in ``RUN/final_scores_<views>.json``; ``score`` False: only what is cached."""
+    path = _final_file(run, views)
+    scores = json.loads(path.read_text()) if path.exists() else {}
+    curves = run / "baselines" / "curves.json"
+    done = {
+        name: run / "baselines" / f"{name}.pt"
+        for name, curve in (json.loads(curves.read_text()) if curves.exists() else {}).items()
+        if curve and curve[-1]["steps"] == s.total_steps
+    }
+    if (run / fed.FINAL).exists():
+        done["federated"] = run / fed.FINAL
+    test = None
+    for name, ckpt in done.items():
+        if name in scores or not score:
+            continue
+        test = test or fed.test_split(s.shards[0], views)
+        m = Trainer.load(ckpt).evaluate(test, progress=True)
+        scores[name] = {
+            "psnr": float(m["psnr"]),
+            "ssim": float(m["ssim"]),
+            "views": len(m["per_view"]),
+        }
+        with atomic_output(path) as tmp:
+            tmp.write_text(json.dumps(scores, indent=1))
+    return scores
 
 
 def _fp16_cost(run: Path, s: fed.FedSettings) -> None:

@@ -75,6 +75,7 @@ class FedSettings:
     rounds: int  # R
     exchange_grid: bool = False  # also average the occupancy grid's densities
     transfer_dtype: str = "fp32"  # "fp32" or "fp16" for the floating arrays on the wire
+    compress: bool = False  # lossless shuffle + deflate of every array on the wire (fedavg.py)
     eval_views: int = 0  # test views for the per-round PSNR (0: all)
     round_timeout: float = 3600.0  # seconds the server waits for a round's replies
     fail_client: int = -1  # fault injection: this partition raises ...
@@ -206,7 +207,8 @@ def _local_round(msg: Message, context: Context, pretrain: bool) -> Message:
         s.transfer_dtype,
     )
     metrics = MetricRecord({WEIGHT_KEY: train.n, "train-s": train_s, "partition-id": k})
-    return Message(RecordDict({"arrays": to_record(arrays), "metrics": metrics}), reply_to=msg)
+    record = to_record(arrays, s.compress)
+    return Message(RecordDict({"arrays": record, "metrics": metrics}), reply_to=msg)
 
 
 def install_global(trainer: Any, update: dict[str, np.ndarray], rebuild: bool) -> None:
@@ -288,7 +290,9 @@ def serve(grid: Grid, run_dir: Path) -> None:
     )
     part = {node: k for k, node in nodes.items()}
     last = history[-1]["round"]
-    arrays = to_record(pack_update(*evaluator.load_global(run_dir, last), s.transfer_dtype))
+    arrays = to_record(
+        pack_update(*evaluator.load_global(run_dir, last), s.transfer_dtype), s.compress
+    )
     for r in range(last + 1, s.rounds + 1):
         t0 = time.perf_counter()
         config = ConfigRecord({"run-dir": str(run_dir)})
@@ -310,7 +314,7 @@ def serve(grid: Grid, run_dir: Path) -> None:
         update = from_record(agg if agg is not None else arrays)
         history.append(evaluator.finish_round(run_dir, r, update, entry, t0))
         save_rounds(run_dir, s, history)
-        arrays = to_record(pack_update(*unpack_update(update), s.transfer_dtype))
+        arrays = to_record(pack_update(*unpack_update(update), s.transfer_dtype), s.compress)
     evaluator.write_final(run_dir, history[-1]["round"])
 
 

@@ -27,6 +27,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--exchange-grid", action="store_true", help="also average the occupancy grids")
     p.add_argument("--transfer-dtype", choices=("fp32", "fp16"), default="fp32")
     p.add_argument(
+        "--compress",
+        action="store_true",
+        help="send every array losslessly compressed (byte shuffle + deflate; ~14%% smaller "
+        "fp16 updates)",
+    )
+    p.add_argument(
         "--baselines",
         action="store_true",
         help="also train centralized and single-drone baselines on the same step budget",
@@ -86,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
         rounds=args.rounds,
         exchange_grid=args.exchange_grid,
         transfer_dtype=args.transfer_dtype,
+        compress=args.compress,
         eval_views=args.eval_views,
         round_timeout=args.round_timeout,
         fail_client=args.fail_client,

@@ -9,6 +9,7 @@ import pytest
 from dronecap.datasets.format import Dataset, Intrinsics, write_dataset
 from dronecap.nerf.config import preset
 from dronecap.nerf.fedavg import (
+    CODEC,
     WEIGHT_KEY,
     array_data_bytes,
     from_record,
@@ -22,9 +23,12 @@ from flwr.app import MetricRecord, RecordDict
 from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
 
 
-def _reply(update: dict[str, np.ndarray], n_images: int) -> RecordDict:
+def _reply(update: dict[str, np.ndarray], n_images: int, compress: bool = False) -> RecordDict:
     return RecordDict(
-        {"arrays": to_record(update), "metrics": MetricRecord({WEIGHT_KEY: n_images})}
+        {
+            "arrays": to_record(update, compress),
+            "metrics": MetricRecord({WEIGHT_KEY: n_images}),
+        }
     )
 
 
@@ -118,6 +122,37 @@ def test_tiny_dronerf_payload_without_grid_in_fp16():
     up = payload_bytes(_reply(pack_update(model, None, "fp16"), 25))
     assert 2 * values <= up <= 2 * values + 4000  # data + headers (~500 B per array)
     assert up < 0.54e6
+
+
+@pytest.mark.parametrize(
+    "array",
+    [
+        np.array([0.0, -0.0, np.inf, -np.inf, np.nan, 65504.0, 6e-8], np.float16),
+        np.arange(24, dtype=np.float32).reshape(2, 3, 4) * 1e-3,
+        np.zeros((0, 2), np.float16),
+        np.array([[True, False, True]]),
+        np.array([-(2**62), 2**62], np.int64),
+    ],
+)
+def test_compressed_arrays_round_trip_bit_exactly(array):
+    rec = to_record({"a": array}, compress=True)
+    assert rec["a"].stype == CODEC
+    back = from_record(rec)["a"]
+    assert back.dtype == array.dtype and back.shape == array.shape
+    assert back.tobytes() == array.tobytes()  # bit-exact, NaN payload and signed zero included
+
+
+def test_compression_shrinks_hash_table_like_fp16_values():
+    """Small-magnitude fp16 values (a trained table's entries) share few sign/exponent bytes."""
+    rng = np.random.default_rng(0)
+    table = {"encoding.table": (rng.normal(size=(50_000, 2)) * 0.05).astype(np.float32)}
+    plain = payload_bytes(_reply(pack_update(table, None, "fp16"), 25))
+    packed = payload_bytes(_reply(pack_update(table, None, "fp16"), 25, compress=True))
+    assert packed < 0.9 * plain
+    # pure noise bytes cannot shrink: deflate's overhead stays bounded
+    noise = {"n": rng.integers(0, 2**16, 50_000).astype(np.uint16).view(np.float16)}
+    n_plain = payload_bytes(_reply(noise, 1))
+    assert payload_bytes(_reply(noise, 1, compress=True)) <= n_plain * 1.01 + 100
 
 
 def test_union_of_shards_keeps_every_train_frame(tmp_path):

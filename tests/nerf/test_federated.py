@@ -41,8 +41,10 @@ def lego_shards(lego_h5, tmp_path_factory) -> list[str]:
 
 @pytest.mark.data
 def test_simulation_two_drones_with_a_failing_client(lego_shards, tmp_path):
+    from dronecap.nerf.fedavg import pack_update, payload_bytes, to_record
     from dronecap.nerf.federated import FedSettings, round_file, run_simulated, save_settings
     from dronecap.nerf.trainer import Trainer
+    from flwr.app import RecordDict
 
     run = tmp_path / "run"
     s = FedSettings(
@@ -50,6 +52,7 @@ def test_simulation_two_drones_with_a_failing_client(lego_shards, tmp_path):
         cfg=dataclasses.asdict(preset("test")),
         fail_client=1,
         fail_round=2,
+        compress=True,  # lossless: the exact-equality checks below hold through it
         **SMALL,
     )
     save_settings(run, s)
@@ -60,10 +63,15 @@ def test_simulation_two_drones_with_a_failing_client(lego_shards, tmp_path):
     r0, r1, r2 = rounds
     # round 0: the coordinator alone pretrained and uploaded the initial global model
     assert list(r0["bytes_up"]) == ["0"] and r0["participants"] == 1
-    # round 1: both drones got the global model and sent updates of identical size
+    # round 1: both drones got the global model and sent updates of about the same
+    # (compressed) size, smaller than the same arrays sent plain
     assert r1["participants"] == 2 and r1["failed"] == {}
-    assert r1["bytes_up"]["0"] == r1["bytes_up"]["1"] > 0
+    up0, up1 = r1["bytes_up"]["0"], r1["bytes_up"]["1"]
+    assert abs(up0 - up1) < 0.02 * up0
     assert r1["bytes_down"]["0"] == r1["bytes_down"]["1"] > 0
+    mine1 = Trainer.load(round_file(run / "clients" / "client_0", 1)).model_weights()
+    plain = payload_bytes(RecordDict({"arrays": to_record(pack_update(mine1, None))}))
+    assert up0 < plain
     # round 2: drone 1 raised; it is left out of the average, logged, and the run went on
     assert r2["participants"] == 1 and list(r2["bytes_up"]) == ["0"]
     assert "injected fault: client 1 fails in round 2" in r2["failed"]["1"]
@@ -107,7 +115,7 @@ def test_cli_interrupted_run_resumes_from_last_round(lego_h5, tmp_path):
     out = tmp_path / "fed"
     args = [str(lego_h5), "--clients", "2", "--scheme", "sector", "--preset", "test"]
     args += ["--pretrain", "12", "--local-steps", "6", "--rounds", "3", "--eval-views", "1"]
-    args += ["--transfer-dtype", "fp16", "--out", str(out)]
+    args += ["--transfer-dtype", "fp16", "--compress", "--out", str(out)]
     # first attempt: stopped hard (whole process group) once round 1 is recorded
     proc = _federate(args, start_new_session=True)
     rounds_json = out / "rounds.json"
