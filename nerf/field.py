@@ -141,8 +141,19 @@ class Field(nn.Module):
     def color(self, geo: Tensor, dirs: Tensor) -> Tensor:
         """Colour [N, C] in (0, 1) from geometry features [N, geo_features] and unit view
         directions [N, 3]."""
-        x = torch.cat([geo, round_to(sh_encode(dirs, self.sh_degree), self.dtype)], -1)
-        return torch.sigmoid(self._run(self.color_mlp, x))
+        return self.color_from_encoding(geo, self.dir_encoding(dirs))
+
+    def dir_encoding(self, dirs: Tensor) -> Tensor:
+        """SH encoding [N, sh_degree^2] of unit directions [N, 3], in the storage precision.
+
+        A ray's samples share its direction: renderers encode once per ray and gather.
+        """
+        return round_to(sh_encode(dirs, self.sh_degree), self.dtype)
+
+    def color_from_encoding(self, geo: Tensor, dir_enc: Tensor) -> Tensor:
+        """Colour [N, C] in (0, 1) from geometry features [N, geo_features] and encoded
+        directions [N, sh_degree^2] (:meth:`dir_encoding`)."""
+        return torch.sigmoid(self._run(self.color_mlp, torch.cat([geo, dir_enc], -1)))
 
     def mlp_parameters(self) -> list[nn.Parameter]:
         """The MLP weights (the ones that get L2 weight decay)."""

@@ -35,6 +35,7 @@ def march(
     aabb: Tensor,
     max_samples: int,
     offsets: Tensor | None = None,
+    max_kept: int = 0,
 ) -> Samples:
     """March rays and keep the samples in occupied cells (CPU tensors).
 
@@ -47,10 +48,11 @@ def march(
         max_samples: at most this many candidates per ray.
         offsets: [R] position of the first sample within its step, in [0, 1) (training
             jitter); None puts samples at step midpoints (0.5).
+        max_kept: > 0: a ray stops at this many kept samples (0: no limit).
 
     Returns:
         :class:`Samples` (ray_indices int64 [S] non-decreasing, t_starts/t_ends float32 [S]
-        clipped to [t_near, t_far], counts int64 [R]).
+        clipped to [t_near, t_far], counts int64 [R], t_resume float32 [R]).
     """
     if not step > 0:
         raise ValueError(f"marching step must be positive, got {step}")
@@ -58,12 +60,13 @@ def march(
     if offsets is None:
         offsets = torch.full((r,), 0.5)
     occupied = torch.zeros(0, dtype=torch.bool) if grid is None else grid.occupied
-    ray_indices, t_starts, t_ends, counts = load_extension().march(
+    ray_indices, t_starts, t_ends, counts, t_resume = load_extension().march(
         *(t.float().contiguous() for t in (origins, dirs, t_near, t_far)),
         float(step),
         occupied.contiguous(),
         aabb.float().contiguous(),
         int(max_samples),
         offsets.float().contiguous(),
+        int(max_kept),
     )
-    return Samples(ray_indices, t_starts, t_ends, counts)
+    return Samples(ray_indices, t_starts, t_ends, counts, t_resume)

@@ -20,13 +20,16 @@ class Samples:
     """Packed samples of ``n_rays`` rays (S samples in total, ordered by ray).
 
     ray_indices: int64 [S]; t_starts, t_ends: float32 [S] (scene units along unit directions);
-    counts: int64 [n_rays] samples per ray.
+    counts: int64 [n_rays] samples per ray; t_resume: float32 [n_rays] where a further march
+    of the ray continues (``t_near + e * step``, ``e`` the candidates examined; >= t_far when
+    the ray is done), or None when not computed.
     """
 
     ray_indices: Tensor
     t_starts: Tensor
     t_ends: Tensor
     counts: Tensor
+    t_resume: Tensor | None = None
 
     @property
     def n(self) -> int:
@@ -44,6 +47,7 @@ def march(
     aabb: Tensor,
     max_samples: int,
     offsets: Tensor | None = None,
+    max_kept: int = 0,
     chunk: int = 1 << 21,
 ) -> Samples:
     """March rays and keep the samples in occupied cells.
@@ -57,10 +61,11 @@ def march(
         max_samples: at most this many candidates per ray.
         offsets: [R] position of the first sample within its step, in [0, 1) (training
             jitter); None puts samples at step midpoints (0.5).
+        max_kept: > 0: a ray stops at this many kept samples (0: no limit); see ``t_resume``.
         chunk: candidates processed at once (bounds memory).
 
     Returns:
-        :class:`Samples` with t_starts/t_ends clipped to [t_near, t_far].
+        :class:`Samples` with t_starts/t_ends clipped to [t_near, t_far], and t_resume.
     """
     if not step > 0:
         raise ValueError(f"marching step must be positive, got {step}")
@@ -70,7 +75,7 @@ def march(
     n_cand = torch.ceil(length / step).clamp(0, max_samples).long()
     off = torch.full((r,), 0.5, device=dev) if offsets is None else offsets
     # a jittered first sample may fall past t_far: drop those candidates below
-    ray_ids, ts = [], []
+    ray_ids, ts, ks = [], [], []
     ends = torch.cumsum(n_cand, 0)
     total = int(ends[-1]) if r else 0
     ray_all = torch.repeat_interleave(torch.arange(r, device=dev), n_cand)
@@ -85,13 +90,27 @@ def march(
             keep &= occupied_at(grid, pts, aabb)
         ray_ids.append(ri[keep])
         ts.append(t[keep])
+        ks.append(k[keep])
     ray_indices = torch.cat(ray_ids) if ray_ids else torch.zeros(0, dtype=torch.long, device=dev)
     t_mid = torch.cat(ts) if ts else torch.zeros(0, device=dev)
+    k_kept = torch.cat(ks) if ks else torch.zeros(0, dtype=torch.long, device=dev)
+    examined = n_cand.clone()
+    if max_kept > 0 and ray_indices.numel():
+        counts = torch.bincount(ray_indices, minlength=r)
+        rank = (
+            torch.arange(ray_indices.numel(), device=dev)
+            - (torch.cumsum(counts, 0) - counts)[ray_indices]
+        )
+        last = rank == max_kept - 1  # a ray's max_kept-th kept sample: it stops there
+        examined[ray_indices[last]] = k_kept[last] + 1
+        below = rank < max_kept
+        ray_indices, t_mid = ray_indices[below], t_mid[below]
+    t_resume = t_near + examined.float() * step
     half = 0.5 * step
     t_starts = torch.maximum(t_mid - half, t_near[ray_indices])
     t_ends = torch.minimum(t_mid + half, t_far[ray_indices])
     counts = torch.bincount(ray_indices, minlength=r)
-    return Samples(ray_indices, t_starts, t_ends, counts)
+    return Samples(ray_indices, t_starts, t_ends, counts, t_resume)
 
 
 def take_rays(samples: Samples, rays: Tensor) -> Samples:

@@ -37,7 +37,6 @@ from .volrend import accumulate, packed_weights, render_packed
 MAX_BAD_STEPS = 20  # consecutive non-finite steps before training stops
 RENDER_RAYS = 1 << 15  # rays per chunk when rendering a view
 RENDER_ROUND = 16  # samples per ray evaluated per round when rendering
-RENDER_MARCH = 64  # candidates marched per ray per round when rendering (the rest: later)
 RENDER_FIELD_CHUNK = 1 << 14  # samples per field call when rendering (activations stay in cache)
 
 
@@ -465,49 +464,38 @@ class Trainer:
 
     @torch.no_grad()
     def render_rays(
-        self, origins, dirs, background, min_transmittance: float = 1e-4, min_weight: float = 1e-5
+        self, origins, dirs, background, min_transmittance: float = 1e-3, min_weight: float = 1e-4
     ):
-        """Colours [R, C] of rays [R, 3] (no grad), evaluating ``RENDER_ROUND`` samples per ray
-        per round and stopping rays whose transmittance fell below ``min_transmittance``
-        (early termination: what lies behind an opaque surface is not evaluated); the colour
-        MLP runs only for samples of weight above ``min_weight``.
+        """Colours [R, C] of rays [R, 3] (no grad), marching and evaluating ``RENDER_ROUND``
+        samples per ray per round and stopping rays whose transmittance fell below
+        ``min_transmittance`` (early termination: what lies behind an opaque surface is not
+        evaluated); the colour MLP runs only for samples of weight above ``min_weight``.
 
-        ``background`` is [C] or [R, C]. Samples sit where :meth:`render` without early
-        termination would put them, so the result differs only by the dropped tail
-        (< ``min_transmittance``) and the skipped weights (< ``min_weight`` each).
+        ``background`` is [C] or [R, C]. Samples sit where an unlimited march would put them,
+        so the result differs only by the dropped tail (< ``min_transmittance``) and the
+        skipped weights (< ``min_weight`` each): on lego models, 70 dB from the exact render
+        (benchmarks/train_speed.py).
         """
         n, c = origins.shape[0], self.scene.channels
         t_near, t_far, hit = ray_aabb(origins, dirs, self.aabb)
+        dir_enc = self.field.dir_encoding(dirs)  # [R, 16]: once per ray, gathered per sample
         rgb = torch.zeros(n, c, device=self.device)
         trans = torch.ones(n, device=self.device)
         alive = hit.nonzero().squeeze(1)
         t0 = t_near.clone()
         limit = self.cfg.max_samples_per_ray
-        cand = min(limit, RENDER_MARCH)
         while alive.numel():
-            o, d, m = origins[alive], dirs[alive], alive.numel()
-            t_start, t_end = t0[alive], t_far[alive]
-            s = self.march(o, d, t_start, t_end, self.step_size, self.grid, self.aabb, cand)
-            # rays cut at `cand` candidates resume at the next candidate; others end at t_far
-            t_next = t_end.clone()
-            if cand < limit:
-                cut = torch.ceil((t_end - t_start).clamp_min(0.0) / self.step_size) > cand
-                t_next[cut] = t_start[cut] + cand * self.step_size
+            o, d, t_end, m = origins[alive], dirs[alive], t_far[alive], alive.numel()
+            s = self.march(
+                o, d, t0[alive], t_end, self.step_size, self.grid, self.aabb, limit,
+                max_kept=RENDER_ROUND,
+            )  # fmt: skip
+            t0[alive] = s.t_resume
             if s.n == 0:
-                t0[alive] = t_next
-                alive = alive[t_next < t_end]
+                alive = alive[s.t_resume < t_end]
                 continue
-            # evaluate only the first RENDER_ROUND samples of each ray; resume at the next one
-            rank = (
-                torch.arange(s.n, device=self.device)
-                - (torch.cumsum(s.counts, 0) - s.counts)[s.ray_indices]
-            )
-            nxt = (rank == RENDER_ROUND).nonzero().squeeze(1)
-            t_next[s.ray_indices[nxt]] = s.t_starts[nxt]
-            take = (rank < RENDER_ROUND).nonzero().squeeze(1)
-            ri, t_s, t_e = s.ray_indices[take], s.t_starts[take], s.t_ends[take]
-            di = d[ri]
-            pts = o[ri] + di * (0.5 * (t_s + t_e))[:, None]
+            ri, t_s, t_e = s.ray_indices, s.t_starts, s.t_ends
+            pts = torch.addcmul(o[ri], d[ri], (0.5 * (t_s + t_e))[:, None])
             parts = [self.field.geometry(p) for p in pts.split(RENDER_FIELD_CHUNK)]
             sigmas, geo = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
             tau = sigmas * (t_e - t_s)
@@ -515,16 +503,18 @@ class Trainer:
             w, _ = packed_weights(tau, ri, m)
             w = w * tr_alive[ri]
             use = (w > min_weight).nonzero().squeeze(1)  # colour only where it shows
-            gu, du, ch = geo[use], di[use], RENDER_FIELD_CHUNK
+            gu, eu, ch = geo[use], dir_enc[alive[ri[use]]], RENDER_FIELD_CHUNK
             colors = torch.cat(
-                [self.field.color(gu[a : a + ch], du[a : a + ch]) for a in range(0, len(use), ch)]
+                [
+                    self.field.color_from_encoding(gu[a : a + ch], eu[a : a + ch])
+                    for a in range(0, len(use), ch)
+                ]
                 or [gu.new_zeros(0, c)]
             )
             rgb.index_add_(0, alive[ri[use]], w[use, None] * colors)
             tr_alive = tr_alive * torch.exp(-accumulate(tau, ri, m))
             trans[alive] = tr_alive
-            t0[alive] = t_next
-            alive = alive[(tr_alive > min_transmittance) & (t_next < t_end)]
+            alive = alive[(tr_alive > min_transmittance) & (s.t_resume < t_end)]
         bg = background.expand(n, c) if background.ndim == 1 else background
         return (rgb + trans[:, None] * bg).clamp(0, 1)
 

@@ -6,6 +6,8 @@
 // k < min(ceil((t_far - t_near) / step), max_samples); a candidate is kept when t_k < t_far
 // and the cell of o + d t_k is occupied (cells: x-major index (i res + j) res + k of the
 // point's position in the AABB, truncated and clamped to the grid; NaN -> cell 0).
+// With max_kept > 0 a ray stops at its max_kept-th kept sample. t_resume = t_near + e * step,
+// e the candidates examined, is where a next call continues the ray (>= t_far: it is done).
 // Each thread owns a contiguous run of rays and collects its samples in a private buffer; the
 // buffers are then copied out in ray order.
 #include <torch/extension.h>
@@ -29,10 +31,12 @@ inline int64_t axis_cell(float p, float lo, float extent, float res_f, int64_t r
 
 }  // namespace
 
-// Returns (ray_indices int64 [S], t_starts float32 [S], t_ends float32 [S], counts int64 [R]).
+// Returns (ray_indices int64 [S], t_starts float32 [S], t_ends float32 [S], counts int64 [R],
+// t_resume float32 [R]).
 std::vector<torch::Tensor> march(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t_near,
                                  torch::Tensor t_far, double step, torch::Tensor occupied,
-                                 torch::Tensor aabb, int64_t max_samples, torch::Tensor offsets) {
+                                 torch::Tensor aabb, int64_t max_samples, torch::Tensor offsets,
+                                 int64_t max_kept) {
   const int64_t r = origins.size(0);
   for (const auto& t : {origins, dirs, aabb}) {
     TORCH_CHECK(t.scalar_type() == torch::kFloat32 && t.is_contiguous() && t.dim() == 2 &&
@@ -65,6 +69,8 @@ std::vector<torch::Tensor> march(torch::Tensor origins, torch::Tensor dirs, torc
 
   auto counts = torch::zeros({r}, torch::dtype(torch::kInt64));
   int64_t* cnt = counts.data_ptr<int64_t>();
+  auto t_resume = torch::empty({r}, torch::dtype(torch::kFloat32));
+  float* resume = t_resume.data_ptr<float>();
   const int nt = at::get_num_threads();
   std::vector<std::vector<float>> kept(nt);  // per run of rays: t of kept candidates, in order
   std::vector<int64_t> first_ray(nt + 1);
@@ -77,7 +83,7 @@ std::vector<torch::Tensor> march(torch::Tensor origins, torch::Tensor dirs, torc
       const float len = std::max(tf[i] - tn[i], 0.0f);
       const float n_f = std::ceil(len / step_f);  // NaN-safe: only n_f >= 1 gives samples
       const int64_t n = n_f >= 1.0f ? int64_t(std::min(n_f, float(max_samples))) : 0;
-      int64_t c = 0;
+      int64_t c = 0, examined = n;
       for (int64_t k = 0; k < n; ++k) {
         const float t = tn[i] + (float(k) + off[i]) * step_f;
         if (!(t < tf[i])) continue;
@@ -90,9 +96,13 @@ std::vector<torch::Tensor> march(torch::Tensor origins, torch::Tensor dirs, torc
           if (!occ[cell]) continue;
         }
         out.push_back(t);
-        ++c;
+        if (++c == max_kept) {
+          examined = k + 1;
+          break;
+        }
       }
       cnt[i] = c;
+      resume[i] = tn[i] + float(examined) * step_f;
     }
   }
   std::vector<int64_t> start(nt + 1, 0);
@@ -117,7 +127,7 @@ std::vector<torch::Tensor> march(torch::Tensor origins, torch::Tensor dirs, torc
       }
     }
   }
-  return {ray_indices, t_starts, t_ends, counts};
+  return {ray_indices, t_starts, t_ends, counts, t_resume};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {

@@ -37,6 +37,7 @@ def assert_same(a: marching.Samples, b: marching.Samples) -> None:
     assert torch.equal(a.counts, b.counts)
     assert torch.equal(a.ray_indices, b.ray_indices)
     assert torch.equal(a.t_starts, b.t_starts) and torch.equal(a.t_ends, b.t_ends)
+    assert torch.equal(a.t_resume, b.t_resume)
 
 
 @pytest.mark.parametrize("occupied_fraction", [None, 0.0, 0.1, 1.0])
@@ -59,6 +60,53 @@ def test_cpp_march_equals_reference(cpp, occupied_fraction):
         assert (out.counts <= 100).all()  # max_samples caps long rays
         assert (out.t_starts >= t_near[out.ray_indices]).all()
         assert (out.t_ends <= t_far[out.ray_indices]).all()
+
+
+@pytest.mark.parametrize("impl", ["reference", "cpp"])
+def test_march_in_rounds_of_max_kept_samples_equals_one_march(cpp, impl):
+    """Marching again and again from t_resume, max_kept samples at a time (how views are
+    rendered), gives the samples of one unlimited march; both implementations agree."""
+    march = {"reference": marching.march, "cpp": march_kernel.march}[impl]
+    origins, dirs = rays(200, seed=4)
+    t_near, t_far, _ = ray_aabb(origins, dirs, AABB)
+    occupied = torch.rand(16**3, generator=torch.Generator().manual_seed(5)) < 0.3
+    grid = GridState(torch.zeros(16**3), occupied)
+    step = float((AABB[1] - AABB[0]).norm()) / 128
+    whole = march(origins, dirs, t_near, t_far, step, grid, AABB, 1000)
+    assert whole.counts.max() > 3 * 5  # several rounds for some rays
+    got: list[list[float]] = [[] for _ in range(200)]
+    t0, alive, rounds = t_near.clone(), torch.arange(200), 0
+    while alive.numel():
+        s = march(
+            origins[alive], dirs[alive], t0[alive], t_far[alive], step, grid, AABB, 1000, max_kept=5
+        )
+        if impl == "cpp":
+            assert_same(
+                s,
+                marching.march(
+                    origins[alive],
+                    dirs[alive],
+                    t0[alive],
+                    t_far[alive],
+                    step,
+                    grid,
+                    AABB,
+                    1000,
+                    max_kept=5,
+                ),
+            )
+        assert (s.counts <= 5).all()
+        for r, t in zip(alive[s.ray_indices].tolist(), s.t_starts.tolist(), strict=True):
+            got[r].append(t)
+        t0[alive] = s.t_resume
+        alive = alive[s.t_resume < t_far[alive]]
+        rounds += 1
+    assert rounds > 3
+    for r in range(200):
+        mine = whole.t_starts[whole.ray_indices == r]
+        # restarting at t_resume re-rounds t by a few ulps; the sample count is exact
+        assert len(got[r]) == len(mine)
+        torch.testing.assert_close(torch.tensor(got[r]), mine, atol=1e-5, rtol=0)
 
 
 def test_cpp_march_no_rays_and_bad_step(cpp):
