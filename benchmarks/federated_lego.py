@@ -58,6 +58,9 @@ def main() -> None:
         help="test views of the final scores in the table (default 0: all 200)",
     )
     ap.add_argument("--compress", action="store_true", help="lossless shuffle+deflate transfer")
+    ap.add_argument(
+        "--cpus", type=int, default=2, help="CPUs Ray may use (drones training at once)"
+    )
     ap.add_argument("--schemes", nargs="+", default=["iid", "sector"])
     ap.add_argument(
         "--fp32-run",
@@ -102,7 +105,7 @@ def main() -> None:
         run.mkdir(parents=True, exist_ok=True)
         fed.save_settings(run, s)
         if a.only != "report" and a.only != "baselines":
-            fed.run_simulated(run)
+            fed.run_simulated(run, fed.SimulationResources(total_cpus=a.cpus))
         if a.only != "report" and a.only != "federated" and dtype == "fp16":
             run_baselines(run, s, curve_marks=False, names=a.baseline_names)
         if (run / fed.FINAL).exists() and a.only != "report" and dtype == "fp16":
@@ -196,48 +199,83 @@ def _fp16_cost(run: Path, s: fed.FedSettings) -> None:
     out.write_text(json.dumps(float(t.evaluate(test)["psnr"]) - before))
 
 
+FLOORS = {"iid": (0.5, 1.0), "sector": (1.0, None)}  # fed - best single >=, central - fed <=
+PAPER_MB = 0.52e6  # the paper's payload per drone per round without the grid
+
+
+def _fmt(score: dict | None) -> str:
+    return f"{score['psnr']:.2f} dB / {score['ssim']:.3f}" if score else "not finished"
+
+
+def _verdicts(r: dict) -> str:
+    """The issue's floors for this row, each with its measured margin and met / NOT met."""
+    f, c, b = r["federated"], r["centralized"], r["best_single"]
+    above, within = FLOORS[r["scheme"]]
+    out = []
+    if f and b:
+        gain = f["psnr"] - b["psnr"]
+        out.append(
+            f"fed - best single {gain:+.2f} dB (floor +{above}: "
+            f"{'met' if gain >= above else 'NOT met'})"
+        )
+    if within is not None and f and c:
+        gap = c["psnr"] - f["psnr"]
+        out.append(
+            f"central - fed {gap:+.2f} dB (floor <= {within}: "
+            f"{'met' if gap <= within else 'NOT met'})"
+        )
+    up = r["bytes_up_per_client"]
+    out.append(
+        f"{up:,} B up per drone per round (floor <= 0.52 MB: "
+        f"{'met' if up <= PAPER_MB else 'NOT met'})"
+    )
+    return "; ".join(out)
+
+
 def _report(rows: list[dict], a: argparse.Namespace) -> str:
     steps = a.pretrain + a.rounds * a.local_steps
+    views = a.final_views or 200
+    cmd = (
+        f"nice .venv/bin/python benchmarks/federated_lego.py --pretrain {a.pretrain} "
+        f"--local-steps {a.local_steps} --rounds {a.rounds} --eval-views {a.eval_views}"
+        + (" --compress" if a.compress else "")
+    )
     lines = [
         "# Federated Tiny-DroNeRF on lego (4 drones x 25 images)",
         "",
-        f"Command: `nice .venv/bin/python benchmarks/federated_lego.py --pretrain {a.pretrain} "
-        f"--local-steps {a.local_steps} --rounds {a.rounds} --eval-views {a.eval_views}`",
+        f"Command: `{cmd}`",
         "",
         f"Schedule: N_pt = {a.pretrain}, N_l = {a.local_steps}, R = {a.rounds}: every method "
-        f"trains {steps} steps on its critical path (centralized and single drones: {steps} "
+        f"trains {steps} steps on its critical path (centralized and each single drone: {steps} "
         "steps; federated: the coordinator's pretraining + R rounds of N_l steps on every "
-        f"drone). Model: tiny-dronerf (T = 2^13, L = 16, F = 2, 64-wide MLPs) with {MACHINE}. "
-        f"PSNR/SSIM on {a.eval_views} evenly spaced lego test views of the 200 (160 px, white "
-        "background; rendering costs ~10 s per view on this loaded machine). Flower "
-        "simulation engine (Ray, 1 CPU per drone) on a shared 2-core CPU.",
+        f"drone). Model: tiny-dronerf (T = 2^13, L = 16, F = 2, 64-wide MLPs, B = 8192) with "
+        f"{MACHINE}. Final scores: mean PSNR/SSIM over {views} lego test views (160 px, white "
+        f"background, scikit-image); the per-round curves use {a.eval_views} evenly spaced "
+        "views. Flower simulation engine (Ray, 1 CPU and 1 torch thread per drone) on the "
+        "2-core CPU.",
         "",
-        "| scheme | transfer | federated PSNR / SSIM | best single drone | centralized | "
-        "fed - best single | central - fed | up per drone per round | link per round | "
-        "federated wall |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| scheme | transfer | federated | best single drone | centralized | "
+        "up per drone per round | link per round | federated wall |",
+        "|---|---|---|---|---|---:|---:|---:|",
     ]
     for r in rows:
-        f, c, b = r["federated"], r["centralized"], r["best_single"]
+        b = r["best_single"]
         link = "-" if r["link_s_per_round"] is None else f"{r['link_s_per_round']:.2f} s"
         done = "" if r["rounds_done"] == a.rounds else f" (after round {r['rounds_done']})"
+        best = f"{_fmt(b)} ({b['name']}, best of {len(r['singles'])}/4)" if b else "not finished"
         lines.append(
-            f"| {r['scheme']} | {r['transfer']} | {f['psnr']:.2f} dB / {f['ssim']:.3f}{done} | "
-            + (
-                f"{b['psnr']:.2f} dB ({b['name']}, best of {len(r['singles'])}/4) | "
-                if b
-                else "not run | "
-            )
-            + (f"{c['psnr']:.2f} dB | " if c else "not run | ")
-            + (f"{f['psnr'] - b['psnr']:+.2f} dB | " if b else "- | ")
-            + (f"{c['psnr'] - f['psnr']:+.2f} dB | " if c else "- | ")
-            + f"{r['bytes_up_per_client']:,} B | {link} | {r['fed_wall_s']:.0f} s |"
+            f"| {r['scheme']} | {r['transfer']}{' + deflate' if a.compress else ''} | "
+            f"{_fmt(r['federated'])}{done} | {best} | {_fmt(r['centralized'])} | "
+            f"{r['bytes_up_per_client']:,} B | {link} | {r['fed_wall_s']:.0f} s |"
         )
+    lines += ["", "Floors (issue 7):", ""]
+    lines += [f"- {r['scheme']}: {_verdicts(r)}" for r in rows]
     lines += [
         "",
         "Bytes are exact: every object Flower serialised for one drone's reply (arrays in the",
-        "transfer dtype, .npy and record headers). Link time: all uploads and downloads of a",
-        "round in turn over one shared 15 Mbit/s radio (the GAP9 cost model's link).",
+        "transfer dtype, losslessly deflated with --compress, plus record headers). Link time:",
+        "all uploads and downloads of a round in turn over one shared 15 Mbit/s radio (the GAP9",
+        "cost model's link).",
         "",
         "fp16 transfer: PSNR change of the final global model after one fp16 round trip of its "
         "weights: "

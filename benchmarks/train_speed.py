@@ -13,6 +13,7 @@ the C++ kernels vs the PyTorch reference. Medians of --repeats windows.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import time
 from pathlib import Path
@@ -25,6 +26,17 @@ RESULTS = REPO / "benchmarks" / "results"
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
 
 
+@contextlib.contextmanager
+def patched_thresholds(trainer, thresholds: dict):
+    """``trainer.render_rays`` with other early-stop ``thresholds`` while the block runs."""
+    plain = trainer.render_rays
+    trainer.render_rays = lambda o, d, bg: plain(o, d, bg, **thresholds)
+    try:
+        yield
+    finally:
+        del trainer.render_rays  # back to the class method
+
+
 def main() -> None:
     """Measure and write benchmarks/results/train_speed.md."""
     from dronecap.datasets.blender import import_blender
@@ -34,6 +46,7 @@ def main() -> None:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--warm", type=int, default=500, help="steps trained before timing")
+    p.add_argument("--trained", type=int, default=3000, help="steps of the second render model")
     p.add_argument("--window", type=int, default=32, help="steps per timed window")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--cache", default="/tmp/dronecap_bench")
@@ -75,22 +88,40 @@ def main() -> None:
         rows.append((label, f"{np.median(cpu):.1f}", f"{np.median(wall):.1f}", batch))
         print(rows[-1], flush=True)
 
-    def render_s(label: str, threads: int) -> None:
+    test = np.flatnonzero(ds.split == 2)[::40]
+    exact: dict[str, np.ndarray] = {}
+
+    def render_s(label: str, threads: int, **thresholds) -> None:
+        """Median time of a view; with ``thresholds`` (render_rays' early-stop settings) the
+        renders become the reference the default ones are compared with (PSNR between them)."""
         torch.set_num_threads(threads)
-        test = np.flatnonzero(ds.split == 2)[::40]
-        wall, cpu = [], []
+        wall, cpu, images = [], [], []
         for _ in range(args.repeats):
+            images = []
             for i in test:
                 t0, c0 = time.perf_counter(), time.process_time()
-                tr.render(ds.poses[i], ds.intrinsics)
+                if thresholds:
+                    with patched_thresholds(tr, thresholds):
+                        images.append(tr.render(ds.poses[i], ds.intrinsics))
+                else:
+                    images.append(tr.render(ds.poses[i], ds.intrinsics))
                 wall.append(1000 * (time.perf_counter() - t0))
                 cpu.append(1000 * (time.process_time() - c0))
+        key = f"{tr.step}"
+        if thresholds:
+            exact[key] = np.stack(images)
+            note = "the reference"
+        elif key in exact:
+            mse = float(np.mean((np.stack(images) - exact[key]) ** 2))
+            note = f"{-10 * np.log10(max(mse, 1e-20)):.0f} dB from the reference"
+        else:
+            note = ""
         rows.append(
             (
                 label,
                 f"{np.median(cpu):.0f}",
                 f"{np.median(wall):.0f}",
-                f"{len(test)} views x {args.repeats}",
+                f"{len(test)} views x {args.repeats}" + (f"; {note}" if note else ""),
             )
         )
         print(rows[-1], flush=True)
@@ -99,16 +130,25 @@ def main() -> None:
     step_ms("step, 8 tiles of 1024 (GAP9 accumulation), 1 thread", 1, tile_samples=1024)
     step_ms("step, grid 128^3 (paper preset as is), 1 thread", 1, grid_res=128)
     step_ms("step, PyTorch reference encoding + marching, 1 thread", 1, backend="torch")
-    render_s("render 160x160 view, 1 thread", 1)
+    step_ms("step, tiny-dronerf (grid 64^3), 1 tile of 8192, C++ kernels, 2 threads", 2)
+    no_stop = dict(min_transmittance=0.0, min_weight=0.0)
+    for steps in (args.warm, args.trained):  # a young foggy model, then a trained one
+        torch.set_num_threads(1)
+        tr.train(steps - tr.step, progress=False)
+        at = f"{steps}-step model"
+        render_s(f"render 160x160 view, {at}, no early stop (exact), 1 thread", 1, **no_stop)
+        render_s(f"render 160x160 view, {at}, 1 thread", 1)
+        render_s(f"render 160x160 view, {at}, 2 threads", 2)
     load = os.getloadavg()[0]
     lines = [
         "# Trainer speed (lego 160 px, tiny-dronerf)",
         "",
-        f"torch {torch.__version__}, 1 thread, after {args.warm} warm-up steps; median of "
+        f"torch {torch.__version__}, after {args.warm} warm-up steps; median of "
         f"{args.repeats} windows of {args.window} steps (grid updates included, amortised). "
-        f"The machine was shared with other jobs (load average {load:.1f} at the end of the "
-        "run), so wall-clock times are inflated; the process CPU time of a 1-thread run is what "
-        "the step costs on an idle core.",
+        f"Load average {load:.1f} at the end of the run (2 cores): with other jobs running, "
+        "wall-clock times are inflated and the process CPU time of a 1-thread run is what "
+        "the step costs on an idle core. Renders: every 40th test view, the default early "
+        "stop (transmittance < 1e-3, colour skipped for weights < 1e-4) against none.",
         "",
         "Command: `.venv/bin/python benchmarks/train_speed.py`",
         "",

