@@ -112,18 +112,15 @@ def _write(name: str, obj: dict) -> None:
     (RUNS / f"{name}.json").write_text(json.dumps(obj, indent=1, default=list) + "\n")
 
 
-def memory_mb(cfg_dict: dict) -> float | None:
-    """Modelled GAP9 footprint (MB) of a configuration, from nerf/gap9.py."""
-    try:
-        from dronecap.nerf.config import TrainConfig
-        from dronecap.nerf.gap9 import cost_report
+def memory_mb(cfg_dict: dict) -> float:
+    """Modelled GAP9 memory (MB, the paper's Table II accounting: parameters, gradients, Adam
+    state, activations, occupancy grid, image) of a run's configuration (nerf/gap9.py)."""
+    from dronecap.nerf.config import TrainConfig
+    from dronecap.nerf.gap9 import cost_report
 
-        d = dict(cfg_dict)
-        d["betas"] = tuple(d["betas"])
-        rep = cost_report(TrainConfig(**d))
-        return rep["memory"]["total_mb"]
-    except Exception:  # the cost model's layout is its own: report "-" rather than fail
-        return None
+    d = dict(cfg_dict)
+    d["betas"] = tuple(d["betas"])
+    return cost_report(TrainConfig(**d))["memory"]["untiled"]["total"] / 1e6
 
 
 def report(args: argparse.Namespace) -> None:
@@ -153,8 +150,8 @@ def report(args: argparse.Namespace) -> None:
         "`.venv/bin/python benchmarks/train_accuracy.py report`.",
         "",
         "| run | preset + overrides | seeds | steps | PSNR dB | SSIM | train s | ms/step | "
-        "render s/view | params | n_max | load |",
-        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "render s/view | params | GAP9 MB | n_max | load |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for key, rs in groups.items():
         p = [r["psnr"] for r in rs]
@@ -168,7 +165,8 @@ def report(args: argparse.Namespace) -> None:
             f"{np.mean([r['train_seconds'] for r in rs]):.0f} | "
             f"{np.mean([r['ms_per_step_median'] for r in rs]):.1f} | "
             f"{np.mean([r['render_seconds'] for r in rs]):.2f} | {r0['parameters']} | "
-            f"{r0['n_max']} | {np.mean([r['load_average'] for r in rs]):.1f} |"
+            f"{memory_mb(r0['config']):.1f} | {r0['n_max']} | "
+            f"{np.mean([r['load_average'] for r in rs]):.1f} |"
         )
     if unfinished:
         lines += [
