@@ -110,8 +110,8 @@ def main() -> None:
             run_baselines(run, s, curve_marks=False, names=a.baseline_names)
         if (run / fed.FINAL).exists() and a.only != "report" and dtype == "fp16":
             _fp16_cost(run, s)
-        if (run / "baselines" / "curves.json").exists():
-            merge_curves(run, s)
+        if (run / "baselines" / "curves.json").exists() and a.only != "baselines":
+            merge_curves(run, s)  # not while a federation may be writing rounds.json
         if not (run / fed.ROUNDS).exists():
             continue
         doc = json.loads((run / fed.ROUNDS).read_text())
