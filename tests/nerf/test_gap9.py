@@ -224,3 +224,19 @@ def test_platform_from_dict():
         platform_from_dict({"hash_rows": "dense"})
     # fp32 activations double the per-sample activation bytes (minus the fp32 position)
     assert arch.act_bytes_per_sample(TOY, p.numerics) == 34 * 4 + 12
+
+
+def test_sized_preset_fits_where_tiny_dronerf_fits(gap9):
+    """tiny-dronerf-sized changes only sizing (finest level, sample spacing, grid): the same
+    table and MLPs, no more modelled GAP9 memory or work per step, and it still fits."""
+    tiny, sized = preset("tiny-dronerf"), preset("tiny-dronerf-sized")
+    a, b = cost_report(tiny, gap9), cost_report(sized, gap9)
+    assert (sized.log2_hashmap, sized.levels, sized.features, sized.hidden) == (
+        tiny.log2_hashmap,
+        tiny.levels,
+        tiny.features,
+        tiny.hidden,
+    )
+    assert b["memory"]["untiled"]["total"] < a["memory"]["untiled"]["total"]
+    assert b["ops"]["step"]["total"] <= a["ops"]["step"]["total"]
+    assert all(v["fits"] for v in b["verdicts"].values())
