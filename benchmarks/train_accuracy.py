@@ -144,7 +144,9 @@ def report(args: argparse.Namespace) -> None:
         "(200 for lego), ground truth composited on the dataset's white background. "
         "Mean over seeds (± std when several). Times are training only (no evaluation), "
         "1 torch thread, on the shared 2-core machine (load average at the end of each run "
-        "in the last column): compare rows with care.",
+        "in the last column): compare rows with care. Rows with a load above 4 (tiny, "
+        "fp16-3k, fp32-3k: session 1) ran while the machine was saturated and their times are "
+        "inflated several-fold; the clean step times are in train_speed.md.",
         "",
         "Commands: see the `run` lines in docs/training.md; this table: "
         "`.venv/bin/python benchmarks/train_accuracy.py report`.",
