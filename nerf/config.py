@@ -83,8 +83,8 @@ PRESETS: dict[str, TrainConfig] = {
     # 160 px scene: the finest level at the pixel footprint (auto_n_max: 223 cells on lego, not
     # 2048), samples every diag/512 (not /1024: twice the rays per step at equal B) and a 64^3
     # occupancy grid (the 128^3 grid bought nothing at 160 px and costs 9 MB more on GAP9).
-    # lego, 10k steps, all 200 test views: 29.10 dB vs 27.21 (seed 0; benchmarks/results/
-    # train_accuracy.md has the ablation and the seeds).
+    # lego, 10k steps, all 200 test views, 3 seeds: 29.05 +- 0.06 dB vs 27.16 +- 0.07
+    # (benchmarks/results/train_accuracy.md has the ablation).
     "tiny-dronerf-sized": _row(8192, 13).replace(auto_n_max=True, march_steps=512, grid_res=64),
     # A seconds-long configuration for the test suite.
     "test": TrainConfig(
