@@ -15,14 +15,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", nargs="?", help="run dir (default: WORKDIR/runs/train)")
     p.add_argument("--dataset", help="dataset.h5 (default: the one the run was trained on)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--threads", type=int, help="torch CPU threads (default: the cores not already busy)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate and update metrics.json."""
     from dronecap import workspace
+    from dronecap.cpu import use_torch_threads
     from dronecap.nerf.runs import open_run, update_metrics
 
     run_dir = workspace.resolve(args.workdir, args.run_dir, workspace.TRAIN_RUN)
+    use_torch_threads(args.threads)
     trainer, ds = open_run(run_dir, args.dataset)
     from dronecap.nerf.trainer import evaluate_run
 

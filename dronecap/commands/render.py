@@ -19,6 +19,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", help="dataset.h5 (default: the one the run was trained on)")
     p.add_argument("--out", help="output folder (default: RUN_DIR/render)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--threads", type=int, help="torch CPU threads (default: the cores not already busy)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,12 +31,14 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from dronecap import workspace
+    from dronecap.cpu import use_torch_threads
     from dronecap.errors import InputError
     from dronecap.nerf.evaluate import test_views
     from dronecap.nerf.outputs import orbit_poses, write_mp4, write_png
     from dronecap.nerf.runs import open_run
 
     run_dir = workspace.resolve(args.workdir, args.run_dir, workspace.TRAIN_RUN)
+    use_torch_threads(args.threads)
     trainer, ds = open_run(run_dir, args.dataset)
     out = Path(args.out) if args.out else run_dir / "render"
     if args.orbit is not None:

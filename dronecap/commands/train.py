@@ -20,7 +20,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--no-resume", action="store_true", help="start over even if a checkpoint exists"
     )
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
+    p.add_argument(
+        "--threads", type=int, help="torch CPU threads (default: the cores not already busy)"
+    )
     p.add_argument(
         "--backend",
         default="auto",
@@ -46,12 +48,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"steps must be >= 0, got {cfg.steps}")
     dataset = workspace.resolve(args.workdir, args.dataset, workspace.DATASET)
     out = workspace.resolve(args.workdir, args.out, workspace.TRAIN_RUN)
-    import torch
-
+    from dronecap.cpu import use_torch_threads
     from dronecap.nerf.trainer import train_run
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    use_torch_threads(args.threads)
     m = train_run(
         dataset,
         cfg,
