@@ -70,9 +70,10 @@ def main() -> None:
     )
     ap.add_argument(
         "--only",
-        choices=("federated", "baselines", "report"),
-        help="run only the federations, only the baselines (both may run at once), or "
-        "nothing: report what --work holds",
+        choices=("federated", "baselines", "score", "report"),
+        help="run only the federations, only the baselines (both may run at once), no "
+        "training but score the finished models on --final-views, or nothing: report what "
+        "--work holds",
     )
     ap.add_argument("--baseline-names", nargs="+", help="these baselines, in this order")
     a = ap.parse_args()
@@ -104,9 +105,9 @@ def main() -> None:
         )
         run.mkdir(parents=True, exist_ok=True)
         fed.save_settings(run, s)
-        if a.only != "report" and a.only != "baselines":
+        if a.only in (None, "federated"):
             fed.run_simulated(run, fed.SimulationResources(total_cpus=a.cpus))
-        if a.only != "report" and a.only != "federated" and dtype == "fp16":
+        if a.only in (None, "baselines") and dtype == "fp16":
             run_baselines(run, s, curve_marks=False, names=a.baseline_names)
         if (run / fed.FINAL).exists() and a.only != "report" and dtype == "fp16":
             _fp16_cost(run, s)
