@@ -129,7 +129,8 @@ def main() -> None:
                 "scheme": scheme,
                 "transfer": dtype,
                 "rounds_done": rounds[-1]["round"],
-                "federated": final.get("federated"),
+                "federated": final.get("federated")
+                or final.get(f"federated_round_{rounds[-1]['round']}"),
                 "centralized": final.get("centralized"),
                 "best_single": best and {"name": best, **singles[best]},
                 "singles": singles,
@@ -167,6 +168,9 @@ def _final_scores(run: Path, s: fed.FedSettings, views: int, score: bool) -> dic
     }
     if (run / fed.FINAL).exists():
         done["federated"] = run / fed.FINAL
+    elif fed.load_rounds(run):  # an unfinished federation: its latest global model
+        last = fed.load_rounds(run)[-1]["round"]
+        done[f"federated_round_{last}"] = fed.round_file(run / "global", last)
     test = None
     for name, ckpt in done.items():
         if name in scores or not score:
