@@ -536,8 +536,8 @@ def run_simulated(run_dir: Path, resources: SimulationResources | None = None) -
 
     res = resources or SimulationResources()
     s = load_settings(run_dir)
-    # Ray starts its workers (the drones) 15 nice levels below the driver; next to any other
-    # busy process they then got ~10 % of a core. Same priority as the driver instead.
+    # Ray starts its workers (the drones) at nice +15 relative to the driver (lower priority);
+    # next to any other busy process they then got ~10 % of a core. The driver's instead.
     os.environ.setdefault("RAY_worker_niceness", "0")
     run_simulation(
         server_app=make_server_app(Path(run_dir).resolve()),
