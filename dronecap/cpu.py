@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 
 
@@ -26,3 +27,10 @@ def use_torch_threads(requested: int | None) -> int:
     n = requested if requested else idle_cores()
     torch.set_num_threads(n)
     return n
+
+
+def add_threads_argument(p: argparse.ArgumentParser) -> None:
+    """The ``--threads N`` option of the commands that run torch (train, render, eval)."""
+    p.add_argument(
+        "--threads", type=int, help="torch CPU threads (default: the cores not already busy)"
+    )

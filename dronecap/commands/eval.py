@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import argparse
 
+from dronecap.cpu import add_threads_argument, use_torch_threads
+
 HELP = "re-evaluate a trained run on its test views (PSNR/SSIM)"
 
 
@@ -15,15 +17,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", nargs="?", help="run dir (default: WORKDIR/runs/train)")
     p.add_argument("--dataset", help="dataset.h5 (default: the one the run was trained on)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument(
-        "--threads", type=int, help="torch CPU threads (default: the cores not already busy)"
-    )
+    add_threads_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate and update metrics.json."""
     from dronecap import workspace
-    from dronecap.cpu import use_torch_threads
     from dronecap.nerf.runs import open_run, update_metrics
 
     run_dir = workspace.resolve(args.workdir, args.run_dir, workspace.TRAIN_RUN)

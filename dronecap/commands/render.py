@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import argparse
 
+from dronecap.cpu import add_threads_argument, use_torch_threads
+
 HELP = "render views (test poses or an orbit) of a trained run"
 
 
@@ -19,9 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", help="dataset.h5 (default: the one the run was trained on)")
     p.add_argument("--out", help="output folder (default: RUN_DIR/render)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument(
-        "--threads", type=int, help="torch CPU threads (default: the cores not already busy)"
-    )
+    add_threads_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -31,7 +31,6 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from dronecap import workspace
-    from dronecap.cpu import use_torch_threads
     from dronecap.errors import InputError
     from dronecap.nerf.evaluate import test_views
     from dronecap.nerf.outputs import orbit_poses, write_mp4, write_png

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import argparse
 
+from dronecap.cpu import add_threads_argument, use_torch_threads
+
 HELP = "train Tiny-DroNeRF on a dataset -> run dir"
 
 
@@ -20,9 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--no-resume", action="store_true", help="start over even if a checkpoint exists"
     )
-    p.add_argument(
-        "--threads", type=int, help="torch CPU threads (default: the cores not already busy)"
-    )
+    add_threads_argument(p)
     p.add_argument(
         "--backend",
         default="auto",
@@ -48,7 +48,6 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"steps must be >= 0, got {cfg.steps}")
     dataset = workspace.resolve(args.workdir, args.dataset, workspace.DATASET)
     out = workspace.resolve(args.workdir, args.out, workspace.TRAIN_RUN)
-    from dronecap.cpu import use_torch_threads
     from dronecap.nerf.trainer import train_run
 
     use_torch_threads(args.threads)
