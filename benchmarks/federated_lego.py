@@ -2,16 +2,20 @@
 
 lego 160x160 RGB, 4 drones x 25 train images (``dronecap shard``), the same step budget for every
 method (N_pt + R N_l steps on the coordinator's critical path; each baseline trains that many
-steps), PSNR/SSIM on evenly spaced test views (rendering is slow here). Federated runs use Flower's
-simulation engine with the tiny-dronerf hash table and MLPs (T = 2^13, L = 16, F = 2, 64-wide),
-fp16 transfer (its PSNR cost: the final global model with fp16-rounded weights, or with --fp32-run
-a second IID run with fp32 transfer).
+steps); per-round curves on --eval-views evenly spaced test views, final scores of every
+finished model on all 200 (--final-views 0). Federated runs use Flower's simulation engine with
+the tiny-dronerf hash table and MLPs (T = 2^13, L = 16, F = 2, 64-wide), fp16 transfer (its PSNR
+cost: the final global model with fp16-rounded weights, or with --fp32-run a second IID run with
+fp32 transfer), losslessly compressed with --compress.
 
-Run (all outputs resumable; the run folders stay in --work):
+Run (all outputs resumable; the run folders stay in --work; the defaults are the paper's
+schedule, about two hours of both cores for both schemes; docs/federated.md shows how to run
+the federations and the baselines as parallel processes):
 
-    nice .venv/bin/python benchmarks/federated_lego.py --work /tmp/fedbench
+    nice .venv/bin/python benchmarks/federated_lego.py --work /tmp/fedbench --compress
 
-Prints the table and writes benchmarks/results/federated_lego.md and federated_lego.png.
+Prints the table and writes benchmarks/results/federated_lego.md and federated_lego.png
+(whatever the schedule: keep a results file from another schedule under another name).
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from dronecap.datasets.blender import import_blender
 from dronecap.datasets.shard import shard_dataset
 from dronecap.nerf import federated as fed
 from dronecap.nerf.config import preset
-from dronecap.nerf.fedbaselines import merge_curves, run_baselines
+from dronecap.nerf.fedbaselines import load_curves, merge_curves, run_baselines
 from dronecap.nerf.fedplot import plot_runs
 from dronecap.nerf.trainer import Trainer
 
@@ -45,9 +49,9 @@ def main() -> None:
     """Run the benchmark; see the module docstring."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--work", type=Path, default=Path("/tmp/fedbench"))
-    ap.add_argument("--pretrain", type=int, default=150)
-    ap.add_argument("--local-steps", type=int, default=100)
-    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--pretrain", type=int, default=10_000, help="N_pt (the paper's)")
+    ap.add_argument("--local-steps", type=int, default=1000, help="N_l (the paper's)")
+    ap.add_argument("--rounds", type=int, default=10, help="R")
     ap.add_argument(
         "--eval-views", type=int, default=20, help="test views (evenly spaced) of the curves"
     )
@@ -160,16 +164,16 @@ def _final_scores(run: Path, s: fed.FedSettings, views: int, score: bool) -> dic
     cached in ``RUN/final_scores_<views>.json``; ``score`` False: only what is cached."""
     path = _final_file(run, views)
     scores = json.loads(path.read_text()) if path.exists() else {}
-    curves = run / "baselines" / "curves.json"
     done = {
         name: run / "baselines" / f"{name}.pt"
-        for name, curve in (json.loads(curves.read_text()) if curves.exists() else {}).items()
+        for name, curve in load_curves(run).items()
         if curve and curve[-1]["steps"] == s.total_steps
     }
+    rounds = fed.load_rounds(run)
     if (run / fed.FINAL).exists():
         done["federated"] = run / fed.FINAL
-    elif fed.load_rounds(run):  # an unfinished federation: its latest global model
-        last = fed.load_rounds(run)[-1]["round"]
+    elif rounds:  # an unfinished federation: its latest global model
+        last = rounds[-1]["round"]
         done[f"federated_round_{last}"] = fed.round_file(run / "global", last)
     test = None
     for name, ckpt in done.items():

@@ -80,7 +80,7 @@ def run_baseline(
     from dronecap.nerf.trainer import Trainer
 
     ckpt = Path(run_dir) / "baselines" / f"{name}.pt"
-    curve = _curves(run_dir).get(name, [])
+    curve = load_curves(run_dir).get(name, [])
     fresh = not curve or not ckpt.exists()
     trainer = Trainer(s.train_config(), train) if fresh else Trainer.load(ckpt, train=train)
     test = test_split(s.shards[0], s.eval_views)
@@ -91,7 +91,7 @@ def run_baseline(
             trainer.save(tmp)
         metrics = trainer.evaluate(test)
         curve.append({"steps": m, "psnr": float(metrics["psnr"]), "ssim": float(metrics["ssim"])})
-        curves = _curves(run_dir)
+        curves = load_curves(run_dir)
         curves[name] = curve
         with atomic_output(_curves_file(run_dir)) as tmp:
             tmp.write_text(json.dumps(curves, indent=1))
@@ -109,13 +109,15 @@ def run_baselines(
 
 def merge_curves(run_dir: Path, s: FedSettings) -> None:
     """Copy the baselines' curves into ``RUN/rounds.json`` (key ``baselines``)."""
-    save_rounds(run_dir, s, load_rounds(run_dir), baselines=_curves(run_dir))
+    save_rounds(run_dir, s, load_rounds(run_dir), baselines=load_curves(run_dir))
 
 
 def _curves_file(run_dir: Path) -> Path:
     return Path(run_dir) / "baselines" / "curves.json"
 
 
-def _curves(run_dir: Path) -> dict[str, list[dict]]:
+def load_curves(run_dir: Path) -> dict[str, list[dict]]:
+    """name -> curve of every baseline recorded in ``RUN/baselines/curves.json`` (empty when
+    none); each curve a list of ``{"steps", "psnr", "ssim"}``."""
     p = _curves_file(run_dir)
     return dict(json.loads(p.read_text())) if p.exists() else {}
