@@ -65,6 +65,8 @@ def main() -> None:
     ap.add_argument(
         "--cpus", type=int, default=2, help="CPUs Ray may use (drones training at once)"
     )
+    ap.add_argument("--server-lr", type=float, default=1.0, help="FedAvgM step (1: FedAvg)")
+    ap.add_argument("--server-momentum", type=float, default=0.0, help="FedAvgM momentum")
     ap.add_argument("--schemes", nargs="+", default=["iid", "sector"])
     ap.add_argument(
         "--fp32-run",
@@ -105,6 +107,8 @@ def main() -> None:
             rounds=a.rounds,
             transfer_dtype=dtype,
             compress=a.compress,
+            server_lr=a.server_lr,
+            server_momentum=a.server_momentum,
             eval_views=a.eval_views,
         )
         run.mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 from flwr.app import Array, ArrayRecord, Message, MetricRecord, RecordDict
-from flwr.serverapp.strategy import FedAvg
+from flwr.serverapp.strategy import FedAvgM
 
 MODEL = "model/"
 GRID = "grid/"
@@ -158,23 +158,28 @@ def array_data_bytes(arrays: Mapping[str, np.ndarray]) -> int:
     return int(sum(np.asarray(a).nbytes for a in arrays.values()))
 
 
-class DroneFedAvg(FedAvg):
-    """Flower's FedAvg, plus exact byte accounting and float32 accumulation of fp16 updates.
+class DroneFedAvg(FedAvgM):
+    """Flower's FedAvg(M), plus exact byte accounting and float32 accumulation of fp16 updates.
 
     Aggregation itself is Flower's (``FedAvg.aggregate_train``, weighted by ``num-examples``);
     before it, each reply's arrays are up-cast to float32 so fp16 transfer does not also mean
-    fp16 accumulation. After each ``configure_train``/``aggregate_train``, ``self.last_round``
-    holds ``bytes_down`` (per destination node), ``bytes_up`` (per replying node) and ``failed``
-    (node id -> reason) of that round.
+    fp16 accumulation. With ``server_learning_rate`` != 1 or ``server_momentum`` > 0 Flower's
+    FedAvgM then takes a server step: ``x <- x - lr * m``, ``m <- momentum * m + (x - avg)``
+    (Hsu et al. 2019), from the float32 global model ``self.current_arrays`` (the arrays as
+    first broadcast, then every aggregate); defaults (1, 0) are plain FedAvg. After each
+    ``configure_train``/``aggregate_train``, ``self.last_round`` holds ``bytes_down`` (per
+    destination node), ``bytes_up`` (per replying node) and ``failed`` (node id -> reason).
     """
 
     def __init__(self, **kwargs: Any) -> None:
         kwargs.setdefault("weighted_by_key", WEIGHT_KEY)
         kwargs.setdefault("fraction_evaluate", 0.0)  # the global model is tested server-side
         super().__init__(**kwargs)
-        self.last_round: dict[str, Any] = {}
+        self.last_round: dict[str, Any] = {"bytes_down": {}, "bytes_up": {}, "failed": {}}
 
     def configure_train(self, server_round, arrays, config, grid) -> Iterable[Message]:  # noqa: D102
+        if self.current_arrays is None:  # the server step starts from float32, not the wire
+            self.current_arrays = _float32_record(arrays)
         messages = list(super().configure_train(server_round, arrays, config, grid))
         self.last_round = {
             "bytes_down": {m.metadata.dst_node_id: payload_bytes(m.content) for m in messages},
@@ -193,18 +198,30 @@ class DroneFedAvg(FedAvg):
                 self.last_round["failed"][node] = msg.error.reason
                 continue
             self.last_round["bytes_up"][node] = payload_bytes(msg.content)
-            ok.append(_upcast(msg))
+            for key in list(msg.content.array_records):
+                msg.content.array_records[key] = _float32_record(msg.content.array_records[key])
+            ok.append(msg)
         return super().aggregate_train(server_round, ok)
 
+    def server_state(self) -> dict[str, np.ndarray]:
+        """The server optimizer's momentum ``{name: array}`` (empty before the first step or
+        without momentum), to save beside the global model for a resume."""
+        if self.momentum_vector is None or self.current_arrays is None:
+            return {}
+        return dict(zip(self.current_arrays.keys(), self.momentum_vector, strict=True))
 
-def _upcast(msg: Message) -> Message:
-    """The same reply with floating arrays in float32 (in place on the received content)."""
-    for key in list(msg.content.array_records):
-        arrays = from_record(msg.content.array_records[key])
-        msg.content.array_records[key] = to_record(
-            {
-                k: a.astype(np.float32) if np.issubdtype(a.dtype, np.floating) else a
-                for k, a in arrays.items()
-            }
-        )
-    return msg
+    def resume(self, current: Mapping[str, np.ndarray], momentum: Mapping[str, np.ndarray]) -> None:
+        """Continue a run: the float32 global model ``current`` and the saved ``momentum``
+        (:meth:`server_state`; empty: none yet)."""
+        self.current_arrays = to_record({k: np.asarray(v, np.float32) for k, v in current.items()})
+        self.momentum_vector = [np.asarray(momentum[k]) for k in current] if momentum else None
+
+
+def _float32_record(record: ArrayRecord) -> ArrayRecord:
+    """``record`` decoded (:func:`from_record`), floating arrays as float32, uncompressed."""
+    return to_record(
+        {
+            k: a.astype(np.float32) if np.issubdtype(a.dtype, np.floating) else a
+            for k, a in from_record(record).items()
+        }
+    )

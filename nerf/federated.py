@@ -8,6 +8,7 @@ in a fresh process for every message and an interrupted run resumes where it sto
     RUN/federation.json              settings (shards, config, schedule) -- written by the driver
     RUN/clients/client_K/round_RRR.pt  drone K's trainer after round RRR (weights, grid, Adam)
     RUN/global/round_RRR.pt          global model after round RRR (round 0 = coordinator's pretrain)
+    RUN/global/momentum_RRR.npz      server momentum after round RRR (FedAvgM runs only)
     RUN/rounds.json                  per-round PSNR, bytes per direction, link time, failures
     RUN/checkpoint.pt                final global model (``Trainer.load``-able)
 
@@ -77,6 +78,8 @@ class FedSettings:
     exchange_grid: bool = False  # also average the occupancy grid's densities
     transfer_dtype: str = "fp32"  # "fp32" or "fp16" for the floating arrays on the wire
     compress: bool = False  # lossless shuffle + deflate of every array on the wire (fedavg.py)
+    server_lr: float = 1.0  # FedAvgM server step size (1 with momentum 0: plain FedAvg)
+    server_momentum: float = 0.0  # FedAvgM server momentum
     eval_views: int = 0  # test views for the per-round PSNR (0: all)
     round_timeout: float = 3600.0  # seconds the server waits for a round's replies
     fail_client: int = -1  # fault injection: this partition raises ...
@@ -295,13 +298,17 @@ def serve(grid: Grid, run_dir: Path) -> None:
         history.append(evaluator.finish_round(run_dir, 0, update, entry, t0))
         save_rounds(run_dir, s, history)
     strategy = DroneFedAvg(
-        min_train_nodes=s.n_clients, min_available_nodes=s.n_clients, arrayrecord_key="arrays"
+        min_train_nodes=s.n_clients,
+        min_available_nodes=s.n_clients,
+        arrayrecord_key="arrays",
+        server_learning_rate=s.server_lr,
+        server_momentum=s.server_momentum,
     )
     part = {node: k for k, node in nodes.items()}
     last = history[-1]["round"]
-    arrays = to_record(
-        pack_update(*evaluator.load_global(run_dir, last), s.transfer_dtype), s.compress
-    )
+    current = pack_update(*evaluator.load_global(run_dir, last), "fp32")
+    strategy.resume(current, load_momentum(run_dir, last))
+    arrays = to_record(pack_update(*unpack_update(current), s.transfer_dtype), s.compress)
     for r in range(last + 1, s.rounds + 1):
         t0 = time.perf_counter()
         config = ConfigRecord({"run-dir": str(run_dir)})
@@ -322,9 +329,28 @@ def serve(grid: Grid, run_dir: Path) -> None:
         }
         update = from_record(agg if agg is not None else arrays)
         history.append(evaluator.finish_round(run_dir, r, update, entry, t0))
+        save_momentum(run_dir, r, strategy.server_state())
         save_rounds(run_dir, s, history)
         arrays = to_record(pack_update(*unpack_update(update), s.transfer_dtype), s.compress)
     evaluator.write_final(run_dir, history[-1]["round"])
+
+
+def save_momentum(run_dir: Path, r: int, momentum: dict[str, np.ndarray]) -> None:
+    """Write the server optimizer's momentum after round ``r`` (``RUN/global/momentum_RRR.npz``;
+    nothing when it has none)."""
+    if momentum:
+        with atomic_output(Path(run_dir) / "global" / f"momentum_{r:03d}.npz") as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, **momentum)
+
+
+def load_momentum(run_dir: Path, r: int) -> dict[str, np.ndarray]:
+    """The momentum saved after round ``r`` (empty when none was saved)."""
+    p = Path(run_dir) / "global" / f"momentum_{r:03d}.npz"
+    if not p.exists():
+        return {}
+    with np.load(p) as z:
+        return {k: z[k] for k in z.files}
 
 
 def _last_line(reason: str) -> str:

@@ -33,6 +33,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "fp16 updates)",
     )
     p.add_argument(
+        "--server-lr",
+        type=float,
+        default=1.0,
+        help="FedAvgM server step size on the averaged update (default 1: plain FedAvg)",
+    )
+    p.add_argument(
+        "--server-momentum", type=float, default=0.0, help="FedAvgM server momentum (default 0)"
+    )
+    p.add_argument(
         "--baselines",
         action="store_true",
         help="also train centralized and single-drone baselines on the same step budget",
@@ -93,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
         exchange_grid=args.exchange_grid,
         transfer_dtype=args.transfer_dtype,
         compress=args.compress,
+        server_lr=args.server_lr,
+        server_momentum=args.server_momentum,
         eval_views=args.eval_views,
         round_timeout=args.round_timeout,
         fail_client=args.fail_client,

@@ -10,6 +10,7 @@ from dronecap.datasets.format import Dataset, Intrinsics, write_dataset
 from dronecap.nerf.config import preset
 from dronecap.nerf.fedavg import (
     CODEC,
+    DroneFedAvg,
     WEIGHT_KEY,
     array_data_bytes,
     from_record,
@@ -19,8 +20,9 @@ from dronecap.nerf.fedavg import (
     unpack_update,
     weighted_mean,
 )
-from flwr.app import MetricRecord, RecordDict
+from flwr.app import Message, MessageType, MetricRecord, RecordDict
 from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
+from flwr.supercore.task_identity import TaskIdentity
 
 
 def _reply(update: dict[str, np.ndarray], n_images: int, compress: bool = False) -> RecordDict:
@@ -208,3 +210,61 @@ def test_rebuilt_grid_hides_less_than_one_probe_per_cell(cube_rgb):
     once, many = error(1), error(16)
     assert many < 0.8 * once
     assert many < 1.1 * kept
+
+
+@pytest.fixture
+def server_task(monkeypatch):
+    """The identity Flower gives a ServerApp's process (run 1, node 0, task 1): Messages need
+    it."""
+    monkeypatch.setattr(TaskIdentity, "_run_id", 1)
+    monkeypatch.setattr(TaskIdentity, "_node_id", 0)
+    monkeypatch.setattr(TaskIdentity, "_task_id", 1)
+
+
+def _replies(updates: list[dict[str, np.ndarray]], counts: list[int]) -> list[Message]:
+    """Replies of drones 1..K to a train instruction, as the server receives them (fp16)."""
+    out = []
+    for node, (u, n) in enumerate(zip(updates, counts, strict=True), start=1):
+        ask = Message(RecordDict(), dst_node_id=node, message_type=MessageType.TRAIN)
+        out.append(Message(_reply(pack_update(u, None, "fp16"), n), reply_to=ask))
+    return out
+
+
+def test_server_momentum_step_and_resume(server_task):
+    """FedAvgM: x <- x - lr * m, m <- beta * m + (x - avg); a resumed strategy continues it."""
+    rng = np.random.default_rng(1)
+    x0 = {"model/t": rng.normal(size=(5, 2)).astype(np.float32)}
+    lr, beta, counts = 1.5, 0.5, [25, 75]
+    rounds = [[{"t": rng.normal(size=(5, 2))} for _ in counts] for _ in range(3)]
+
+    def averaged(r: int) -> np.ndarray:  # what the server averages: the fp16 updates
+        ups = [{"t": u["t"].astype(np.float16)} for u in rounds[r]]
+        return weighted_mean(ups, counts)["t"]
+
+    strategy = DroneFedAvg(server_learning_rate=lr, server_momentum=beta)
+    strategy.resume(x0, {})
+    x, m = x0["model/t"].astype(np.float64), None
+    for r in range(2):
+        agg, _ = strategy.aggregate_train(r + 1, _replies(rounds[r], counts))
+        g = x - averaged(r)
+        m = g if m is None else beta * m + g
+        x = x - lr * m
+        np.testing.assert_allclose(from_record(agg)["model/t"], x, rtol=1e-5, atol=1e-5)
+    # plain FedAvg would land on the average itself: the server step moved it
+    assert np.abs(x - averaged(1)).max() > 0.1
+    resumed = DroneFedAvg(server_learning_rate=lr, server_momentum=beta)
+    resumed.resume(from_record(agg), strategy.server_state())
+    a, _ = strategy.aggregate_train(3, _replies(rounds[2], counts))
+    b, _ = resumed.aggregate_train(3, _replies(rounds[2], counts))
+    np.testing.assert_array_equal(from_record(a)["model/t"], from_record(b)["model/t"])
+
+
+def test_default_server_step_is_plain_fedavg(server_task):
+    rng = np.random.default_rng(2)
+    updates = [{"t": rng.normal(size=(4,))} for _ in range(2)]
+    strategy = DroneFedAvg()
+    strategy.resume({"model/t": np.zeros(4, np.float32)}, {})
+    agg, _ = strategy.aggregate_train(1, _replies(updates, [25, 25]))
+    ref = weighted_mean([{"t": u["t"].astype(np.float16)} for u in updates], [25, 25])["t"]
+    np.testing.assert_allclose(from_record(agg)["model/t"], ref, rtol=1e-6)
+    assert strategy.server_state() == {}
