@@ -10,8 +10,8 @@ from dronecap.datasets.format import Dataset, Intrinsics, write_dataset
 from dronecap.nerf.config import preset
 from dronecap.nerf.fedavg import (
     CODEC,
-    DroneFedAvg,
     WEIGHT_KEY,
+    DroneFedAvg,
     array_data_bytes,
     from_record,
     pack_update,
