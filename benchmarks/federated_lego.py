@@ -15,7 +15,7 @@ the federations and the baselines as parallel processes):
     nice .venv/bin/python benchmarks/federated_lego.py --work /tmp/fedbench --compress
 
 Prints the table and writes benchmarks/results/federated_lego.md and federated_lego.png
-(whatever the schedule: keep a results file from another schedule under another name).
+(--results NAME: NAME.md and NAME.png instead, for any other schedule or server step).
 """
 
 from __future__ import annotations
@@ -80,6 +80,11 @@ def main() -> None:
         help="run only the federations, only the baselines (both may run at once), no "
         "training but score the finished models on --final-views, or nothing: report what "
         "--work holds",
+    )
+    ap.add_argument(
+        "--results",
+        default="federated_lego",
+        help="name of the table and plot in benchmarks/results (keep the paper schedule's)",
     )
     ap.add_argument("--baseline-names", nargs="+", help="these baselines, in this order")
     a = ap.parse_args()
@@ -151,9 +156,9 @@ def main() -> None:
             }
         )
         print(json.dumps(rows[-1], indent=1), flush=True)
-    plot_runs(panels, RESULTS / "federated_lego.png")
+    plot_runs(panels, RESULTS / f"{a.results}.png")
     report = _report(rows, a)
-    (RESULTS / "federated_lego.md").write_text(report)
+    (RESULTS / f"{a.results}.md").write_text(report)
     (a.work / "summary.json").write_text(json.dumps(rows, indent=1))
     print(report)
 
@@ -252,6 +257,9 @@ def _report(rows: list[dict], a: argparse.Namespace) -> str:
         f"nice .venv/bin/python benchmarks/federated_lego.py --pretrain {a.pretrain} "
         f"--local-steps {a.local_steps} --rounds {a.rounds} --eval-views {a.eval_views}"
         + (" --compress" if a.compress else "")
+        + (f" --server-lr {a.server_lr:g}" if a.server_lr != 1 else "")
+        + (f" --server-momentum {a.server_momentum:g}" if a.server_momentum else "")
+        + (f" --results {a.results}" if a.results != "federated_lego" else "")
     )
     lines = [
         "# Federated Tiny-DroNeRF on lego (4 drones x 25 images)",
@@ -265,7 +273,12 @@ def _report(rows: list[dict], a: argparse.Namespace) -> str:
         f"{MACHINE}. Final scores: mean PSNR/SSIM over {views} lego test views (160 px, white "
         f"background, scikit-image); the per-round curves use {a.eval_views} evenly spaced "
         "views. Flower simulation engine (Ray, 1 CPU and 1 torch thread per drone) on the "
-        "2-core CPU.",
+        "2-core CPU. Server step: "
+        + (
+            "plain FedAvg (the average is the new global model)."
+            if (a.server_lr, a.server_momentum) == (1, 0)
+            else f"FedAvgM, server learning rate {a.server_lr:g}, momentum {a.server_momentum:g}."
+        ),
         "",
         "| scheme | transfer | federated | best single drone | centralized | "
         "up per drone per round | link per round | federated wall |",
@@ -308,7 +321,7 @@ def _report(rows: list[dict], a: argparse.Namespace) -> str:
             if r["singles"]
         ),
         "",
-        "![PSNR per round](federated_lego.png)",
+        f"![PSNR per round]({a.results}.png)",
         "",
     ]
     return "\n".join(lines)
