@@ -104,6 +104,33 @@ def test_simulation_two_drones_with_a_failing_client(lego_shards, tmp_path):
     assert doc["settings"]["fail_client"] == 1
 
 
+def _check_server_momentum_step(run: Path, rounds: int, lr: float, beta: float) -> None:
+    """Every round's global model is FedAvgM's step from the previous one, across the resume:
+    ``m_r = beta m_{r-1} + (x_{r-1} - avg_r)``, ``x_r = x_{r-1} - lr m_r``, with ``avg_r`` the
+    mean of the drones' fp16 models (equal shards) and ``m_r`` as saved after round r."""
+    from dronecap.nerf.federated import load_momentum, round_file
+    from dronecap.nerf.trainer import Trainer
+
+    def weights(path: Path) -> dict[str, np.ndarray]:
+        return {f"model/{k}": v for k, v in Trainer.load(path).model_weights().items()}
+
+    x = weights(round_file(run / "global", 0))
+    m: dict[str, np.ndarray] = {}
+    for r in range(1, rounds + 1):
+        drones = [weights(round_file(run / "clients" / f"client_{k}", r)) for k in range(2)]
+        saved = load_momentum(run, r)
+        assert sorted(saved) == sorted(x)
+        for key in x:
+            avg = np.mean([d[key].astype(np.float16).astype(np.float64) for d in drones], axis=0)
+            m_r = (beta * m[key] if m else 0.0) + (x[key] - avg)
+            np.testing.assert_allclose(saved[key], m_r, atol=1e-4)
+        m = saved
+        new = weights(round_file(run / "global", r))
+        for key in x:
+            np.testing.assert_allclose(new[key], x[key] - lr * m[key], atol=1e-4)
+        x = new
+
+
 def _federate(args: list[str], **kw) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "dronecap.cli", "federate", *args]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
@@ -115,7 +142,8 @@ def test_cli_interrupted_run_resumes_from_last_round(lego_h5, tmp_path):
     out = tmp_path / "fed"
     args = [str(lego_h5), "--clients", "2", "--scheme", "sector", "--preset", "test"]
     args += ["--pretrain", "12", "--local-steps", "6", "--rounds", "3", "--eval-views", "1"]
-    args += ["--transfer-dtype", "fp16", "--compress", "--out", str(out)]
+    args += ["--transfer-dtype", "fp16", "--compress", "--server-lr", "1.5"]
+    args += ["--server-momentum", "0.5", "--out", str(out)]
     # first attempt: stopped hard (whole process group) once round 1 is recorded
     proc = _federate(args, start_new_session=True)
     rounds_json = out / "rounds.json"
@@ -139,6 +167,7 @@ def test_cli_interrupted_run_resumes_from_last_round(lego_h5, tmp_path):
     assert sorted(doc["baselines"]) == ["centralized", "client_0", "client_1"]
     assert [c["steps"] for c in doc["baselines"]["centralized"]] == [12, 18, 24, 30]
     assert (out / "psnr.png").stat().st_size > 1000
+    _check_server_momentum_step(out, rounds=3, lr=1.5, beta=0.5)
     # the same run folder with other settings is refused, not silently mixed
     proc = _federate([*args[:-2], "--rounds", "4", "--out", str(out)])
     text = proc.communicate(timeout=300)[0]
