@@ -25,6 +25,8 @@ import argparse
 import json
 from pathlib import Path
 
+from dronecap.nerf.fedplot import save_png
+
 from dronecap.files import atomic_output
 
 RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
@@ -104,10 +106,7 @@ def plot(rows: list[dict], path: Path) -> None:
     ax.set_ylabel("global-model PSNR [dB]")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def main() -> None:

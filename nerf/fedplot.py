@@ -45,6 +45,13 @@ def plot_runs(panels: dict[str, dict], path: str | Path) -> Path:
         ax.set_ylabel("test PSNR [dB]")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
+    return save_png(fig, path)
+
+
+def save_png(fig, path: str | Path) -> Path:
+    """Lay out ``fig`` (a matplotlib Figure), write it as a PNG atomically, and close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     with atomic_output(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
