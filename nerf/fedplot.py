@@ -6,6 +6,8 @@ from pathlib import Path
 
 from dronecap.files import atomic_output
 
+SINGLE_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:olive")
+
 
 def plot_runs(panels: dict[str, dict], path: str | Path) -> Path:
     """One panel per run: global-model PSNR per round, and the baselines' curves.
@@ -30,6 +32,7 @@ def plot_runs(panels: dict[str, dict], path: str | Path) -> Path:
             lw=2,
             label="federated (global model)",
         )
+        singles = iter(SINGLE_COLOURS)
         for name, curve in sorted(doc.get("baselines", {}).items()):
             central = name == "centralized"
             ax.plot(
@@ -37,8 +40,8 @@ def plot_runs(panels: dict[str, dict], path: str | Path) -> Path:
                 [c["psnr"] for c in curve],
                 "s--" if central else "o:",
                 lw=1.5 if central else 1.0,
-                color="tab:red" if central else None,
-                label=name.replace("_", " ") + (" (upper bound)" if central else " alone"),
+                color="tab:red" if central else next(singles, None),
+                label=name.replace("_", " ") + (" (same steps)" if central else " alone"),
             )
         ax.set_title(title)
         ax.set_xlabel("optimizer steps (coordinator's critical path)")
