@@ -164,7 +164,7 @@ class DroneFedAvg(FedAvgM):
     Aggregation itself is Flower's (``FedAvg.aggregate_train``, weighted by ``num-examples``);
     before it, each reply's arrays are up-cast to float32 so fp16 transfer does not also mean
     fp16 accumulation. With ``server_learning_rate`` != 1 or ``server_momentum`` > 0 Flower's
-    FedAvgM then takes a server step: ``x <- x - lr * m``, ``m <- momentum * m + (x - avg)``
+    FedAvgM then takes a server step: ``m <- momentum * m + (x - avg)``, then ``x <- x - lr * m``
     (Hsu et al. 2019), from the float32 global model ``self.current_arrays`` (the arrays as
     first broadcast, then every aggregate); defaults (1, 0) are plain FedAvg. After each
     ``configure_train``/``aggregate_train``, ``self.last_round`` holds ``bytes_down`` (per
