@@ -53,6 +53,32 @@ def load_variant(work: Path, scheme: str) -> dict:
     }
 
 
+def held_out_psnr(run: Path, names: list[str]) -> dict[str, float]:
+    """Mean PSNR of the named models of ``run`` (``federated``: ``checkpoint.pt``; others:
+    ``baselines/<name>.pt``) on the test views the per-round curves did NOT use, i.e. views no
+    server step was chosen on; cached in ``RUN/held_out_scores.json``."""
+    import numpy as np
+    import torch
+    from dronecap.nerf import federated as fed
+    from dronecap.nerf.trainer import Trainer
+
+    cache = run / "held_out_scores.json"
+    scores = json.loads(cache.read_text()) if cache.exists() else {}
+    s = fed.load_settings(run)
+    test = fed.test_split(s.shards[0])
+    curve = set(np.linspace(0, test.n - 1, s.eval_views).round().astype(int).tolist())
+    held_out = [i for i in range(test.n) if i not in curve]
+    torch.set_num_threads(1)
+    for name in names:
+        ckpt = run / fed.FINAL if name == "federated" else run / "baselines" / f"{name}.pt"
+        if name in scores or not ckpt.exists():
+            continue
+        scores[name] = Trainer.load(ckpt).evaluate(test, views=held_out, progress=True)["psnr"]
+        with atomic_output(cache) as tmp:
+            tmp.write_text(json.dumps(scores, indent=1))
+    return scores
+
+
 def report(rows: list[dict], scheme: str) -> str:
     """Markdown table of the variants."""
 
@@ -65,10 +91,12 @@ def report(rows: list[dict], scheme: str) -> str:
         "Curve: global-model PSNR after each round on the run's curve views (20 evenly spaced",
         "test views); final: all 200 test views; best single drone and centralized: the same",
         "step budget (benchmarks/federated_lego.py). Made by benchmarks/federated_server_step.py.",
+        "Held-out views: the 180 test views outside the curves' 20, on which no variant was",
+        "chosen (with --held-out; the baselines scored in the first folder, which all share).",
         "",
         "| server step | schedule | PSNR per round (curve views) | final | best single | "
-        "centralized | final - best single |",
-        "|---|---|---|---:|---:|---:|---:|",
+        "centralized | final - best single | held-out views: final - best single |",
+        "|---|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         curve = " ".join(f"{p:.2f}" for _, p in r["curve"])
@@ -82,7 +110,8 @@ def report(rows: list[dict], scheme: str) -> str:
         )
         lines.append(
             f"| {r['step']} | {r['schedule']} | {curve} | {db(r['federated'])} | "
-            f"{db(r['best_single'])} | {db(r['centralized'])} | {gain} |"
+            f"{db(r['best_single'])} | {db(r['centralized'])} | {gain} | "
+            f"{r.get('held_out_gain', '-')} |"
         )
     lines += ["", "![PSNR per round](federated_server_step.png)", ""]
     return "\n".join(lines)
@@ -113,8 +142,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("works", nargs="+", type=Path, help="federated_lego.py work folders")
     ap.add_argument("--scheme", default="iid", choices=("iid", "sector"))
+    ap.add_argument(
+        "--held-out",
+        action="store_true",
+        help="also score the final models on the test views the curves did not use",
+    )
     a = ap.parse_args()
     rows = [load_variant(w, a.scheme) for w in a.works]
+    if a.held_out:
+        first = a.works[0] / f"{a.scheme}_fp16"
+        names = json.loads((first / "final_scores_all.json").read_text())
+        best = max((k for k in names if k.startswith("client_")), key=lambda k: names[k]["psnr"])
+        base = held_out_psnr(first, ["centralized", best])
+        for row, work in zip(rows, a.works, strict=True):
+            fed = held_out_psnr(work / f"{a.scheme}_fp16", ["federated"]).get("federated")
+            if fed is not None:
+                row["held_out_gain"] = f"{fed - base[best]:+.2f} ({fed:.2f} vs {base[best]:.2f})"
     text = report(rows, a.scheme)
     with atomic_output(RESULTS / "federated_server_step.md") as tmp:
         tmp.write_text(text)
