@@ -12,7 +12,11 @@ Run (all outputs resumable; the run folders stay in --work; the defaults are the
 schedule, about two hours of both cores for both schemes; docs/federated.md shows how to run
 the federations and the baselines as parallel processes):
 
-    nice .venv/bin/python benchmarks/federated_lego.py --work /tmp/fedbench --compress
+    nice .venv/bin/python benchmarks/federated_lego.py --work /tmp/fedbench --compress \
+        --server-lr 2 --server-momentum 0.5
+
+(the command of benchmarks/results/federated_lego.md; without the last two options: the
+paper's plain FedAvg, as in federated_lego_fedavg.md)
 
 Prints the table and writes benchmarks/results/federated_lego.md and federated_lego.png
 (--results NAME: NAME.md and NAME.png instead, for any other schedule or server step).
@@ -158,7 +162,8 @@ def main() -> None:
         print(json.dumps(rows[-1], indent=1), flush=True)
     plot_runs(panels, RESULTS / f"{a.results}.png")
     report = _report(rows, a)
-    (RESULTS / f"{a.results}.md").write_text(report)
+    with atomic_output(RESULTS / f"{a.results}.md") as tmp:
+        tmp.write_text(report)
     (a.work / "summary.json").write_text(json.dumps(rows, indent=1))
     print(report)
 

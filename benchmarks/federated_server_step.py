@@ -25,6 +25,7 @@ import argparse
 import json
 from pathlib import Path
 
+from dronecap.nerf import federated as fed
 from dronecap.nerf.fedplot import save_png
 
 from dronecap.files import atomic_output
@@ -35,20 +36,21 @@ RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
 def load_variant(work: Path, scheme: str) -> dict:
     """Settings, per-round PSNR and final scores of ``work/<scheme>_fp16``."""
     run = work / f"{scheme}_fp16"
-    doc = json.loads((run / "rounds.json").read_text())
+    s = fed.load_settings(run)
     scores_file = run / "final_scores_all.json"
     scores = json.loads(scores_file.read_text()) if scores_file.exists() else {}
-    s = json.loads((run / "federation.json").read_text())
-    lr, mom = s.get("server_lr", 1.0), s.get("server_momentum", 0.0)
     singles = {k: v["psnr"] for k, v in scores.items() if k.startswith("client_")}
+    best = max(singles, key=singles.get, default=None)
+    step = f"FedAvgM lr {s.server_lr:g}, momentum {s.server_momentum:g}"
     return {
         "work": str(work),
-        "step": "FedAvg" if (lr, mom) == (1.0, 0.0) else f"FedAvgM lr {lr:g}, momentum {mom:g}",
-        "schedule": f"N_pt {s['pretrain']}, N_l {s['local_steps']}, R {s['rounds']}",
-        "curve": [(r["round"], r["psnr"]) for r in doc["rounds"]],
-        "rounds_planned": s["rounds"],
+        "step": "FedAvg" if (s.server_lr, s.server_momentum) == (1.0, 0.0) else step,
+        "schedule": f"N_pt {s.pretrain}, N_l {s.local_steps}, R {s.rounds}",
+        "curve": [(r["round"], r["psnr"]) for r in fed.load_rounds(run)],
+        "rounds_planned": s.rounds,
         "federated": scores.get("federated", {}).get("psnr"),
-        "best_single": max(singles.values(), default=None),
+        "best_name": best,
+        "best_single": singles.get(best),
         "centralized": scores.get("centralized", {}).get("psnr"),
     }
 
@@ -59,7 +61,6 @@ def held_out_psnr(run: Path, names: list[str]) -> dict[str, float]:
     server step was chosen on; cached in ``RUN/held_out_scores.json``."""
     import numpy as np
     import torch
-    from dronecap.nerf import federated as fed
     from dronecap.nerf.trainer import Trainer
 
     cache = run / "held_out_scores.json"
@@ -150,14 +151,12 @@ def main() -> None:
     a = ap.parse_args()
     rows = [load_variant(w, a.scheme) for w in a.works]
     if a.held_out:
-        first = a.works[0] / f"{a.scheme}_fp16"
-        names = json.loads((first / "final_scores_all.json").read_text())
-        best = max((k for k in names if k.startswith("client_")), key=lambda k: names[k]["psnr"])
-        base = held_out_psnr(first, ["centralized", best])
+        best = rows[0]["best_name"]
+        single = held_out_psnr(a.works[0] / f"{a.scheme}_fp16", [best])[best]
         for row, work in zip(rows, a.works, strict=True):
-            fed = held_out_psnr(work / f"{a.scheme}_fp16", ["federated"]).get("federated")
-            if fed is not None:
-                row["held_out_gain"] = f"{fed - base[best]:+.2f} ({fed:.2f} vs {base[best]:.2f})"
+            mine = held_out_psnr(work / f"{a.scheme}_fp16", ["federated"]).get("federated")
+            if mine is not None:
+                row["held_out_gain"] = f"{mine - single:+.2f} ({mine:.2f} vs {single:.2f})"
     text = report(rows, a.scheme)
     with atomic_output(RESULTS / "federated_server_step.md") as tmp:
         tmp.write_text(text)

@@ -165,8 +165,9 @@ class DroneFedAvg(FedAvgM):
     before it, each reply's arrays are up-cast to float32 so fp16 transfer does not also mean
     fp16 accumulation. With ``server_learning_rate`` != 1 or ``server_momentum`` > 0 Flower's
     FedAvgM then takes a server step: ``m <- momentum * m + (x - avg)``, then ``x <- x - lr * m``
-    (Hsu et al. 2019), from the float32 global model ``self.current_arrays`` (the arrays as
-    first broadcast, then every aggregate); defaults (1, 0) are plain FedAvg. After each
+    (Hsu et al. 2019), from the float32 global model ``self.current_arrays`` (set by
+    :meth:`resume` before the first round, then every aggregate); defaults (1, 0) are plain
+    FedAvg. After each
     ``configure_train``/``aggregate_train``, ``self.last_round`` holds ``bytes_down`` (per
     destination node), ``bytes_up`` (per replying node) and ``failed`` (node id -> reason).
     """
@@ -178,14 +179,9 @@ class DroneFedAvg(FedAvgM):
         self.last_round: dict[str, Any] = {"bytes_down": {}, "bytes_up": {}, "failed": {}}
 
     def configure_train(self, server_round, arrays, config, grid) -> Iterable[Message]:  # noqa: D102
-        if self.current_arrays is None:  # the server step starts from float32, not the wire
-            self.current_arrays = _float32_record(arrays)
         messages = list(super().configure_train(server_round, arrays, config, grid))
-        self.last_round = {
-            "bytes_down": {m.metadata.dst_node_id: payload_bytes(m.content) for m in messages},
-            "bytes_up": {},
-            "failed": {},
-        }
+        down = {m.metadata.dst_node_id: payload_bytes(m.content) for m in messages}
+        self.last_round = {"bytes_down": down, "bytes_up": {}, "failed": {}}
         return messages
 
     def aggregate_train(  # noqa: D102
@@ -211,8 +207,8 @@ class DroneFedAvg(FedAvgM):
         return dict(zip(self.current_arrays.keys(), self.momentum_vector, strict=True))
 
     def resume(self, current: Mapping[str, np.ndarray], momentum: Mapping[str, np.ndarray]) -> None:
-        """Continue a run: the float32 global model ``current`` and the saved ``momentum``
-        (:meth:`server_state`; empty: none yet)."""
+        """Start or continue a run from the float32 global model ``current`` (not its fp16 or
+        compressed wire copy) and the saved ``momentum`` (:meth:`server_state`; empty: none)."""
         self.current_arrays = to_record({k: np.asarray(v, np.float32) for k, v in current.items()})
         self.momentum_vector = [np.asarray(momentum[k]) for k in current] if momentum else None
 
