@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import h5py
 import numpy as np
+
 from dronecap.datasets.blender import import_blender
 from dronecap.datasets.bounds import carve_aabb, lookat_cube
 from dronecap.datasets.export import export_transforms

@@ -30,15 +30,15 @@ import json
 from pathlib import Path
 
 import torch
+
 from dronecap.datasets.blender import import_blender
 from dronecap.datasets.shard import shard_dataset
-from dronecap.nerf import federated as fed
-from dronecap.nerf.config import preset
-from dronecap.nerf.fedbaselines import load_curves, merge_curves, run_baselines
-from dronecap.nerf.fedplot import plot_runs
-from dronecap.nerf.trainer import Trainer
-
+from dronecap.federated import run as fed
+from dronecap.federated.baselines import load_curves, merge_curves, run_baselines
+from dronecap.federated.plot import plot_runs
 from dronecap.files import atomic_output
+from dronecap.nerf.config import preset
+from dronecap.nerf.trainer import Trainer
 
 REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"

@@ -25,9 +25,8 @@ import argparse
 import json
 from pathlib import Path
 
-from dronecap.nerf import federated as fed
-from dronecap.nerf.fedplot import save_png
-
+from dronecap.federated import run as fed
+from dronecap.federated.plot import save_png
 from dronecap.files import atomic_output
 
 RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
@@ -61,6 +60,7 @@ def held_out_psnr(run: Path, names: list[str]) -> dict[str, float]:
     server step was chosen on; cached in ``RUN/held_out_scores.json``."""
     import numpy as np
     import torch
+
     from dronecap.nerf.trainer import Trainer
 
     cache = run / "held_out_scores.json"

@@ -14,8 +14,9 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-from dronecap.nerf.gap9 import cost_report, load_platform
-from dronecap.nerf.gap9_paper import (
+
+from dronecap.gap9.model import cost_report, load_platform
+from dronecap.gap9.paper import (
     TABLE2,
     TABLE2_STEPS,
     calibrate,
@@ -24,7 +25,7 @@ from dronecap.nerf.gap9_paper import (
     table2,
     table2_config,
 )
-from dronecap.nerf.gap9_search import Budget, choose, evaluate, paper_points, pareto_plot
+from dronecap.gap9.search import Budget, choose, evaluate, paper_points, pareto_plot
 
 OUT = Path(__file__).resolve().parent / "results"
 

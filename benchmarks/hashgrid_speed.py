@@ -20,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
+
 from dronecap.nerf import march_kernel, marching
 from dronecap.nerf.hashgrid import HashGrid, hash_encode_cpp
 from dronecap.nerf.occupancy import GridState

@@ -24,10 +24,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from dronecap.capture.framing import make_framing
 from dronecap.capture.ingest import IngestParams, ingest
 from dronecap.capture.quality import MotionTracker, frame_scores
-from dronecap.capture.simulate import render_flight, simulate
+from dronecap.simulator.simulate import render_flight, simulate
 
 RESULTS = Path(__file__).resolve().parent / "results" / "ingest_speed.md"
 

@@ -37,16 +37,15 @@ FLOORS = {  # scene -> (registered %, median rotation deg, ATE % of extent, tota
 
 def build_flights(work: Path) -> dict[str, tuple[Path, Path]]:
     """scene name -> (frames.h5, poses.json), building what is missing."""
+    from dronecap.cli import main as cli
     from dronecap.datasets.format import write_dataset
     from dronecap.sfm.blender_flight import blender_flight
-
-    from dronecap.cli import main as cli
 
     work.mkdir(parents=True, exist_ok=True)
     flights = {}
     video, gt = work / "corridor.mkv", work / "corridor.json"
     if not gt.exists():
-        from dronecap.capture.simulate import simulate
+        from dronecap.simulator.simulate import simulate
 
         simulate("corridor", video, frames=300, seed=0, progress=False)
     for name, extra in (("corridor-sel", []), ("corridor-dense", ["--min-motion", "0.5"])):
@@ -89,10 +88,9 @@ def settings(quick: bool) -> list[tuple[str, str, dict]]:
 
 def run_one(frames: Path, gt: Path, out: Path, overrides: dict) -> dict:
     """One run_sfm; returns the row of the table (failures become a row too)."""
+    from dronecap.errors import InputError
     from dronecap.sfm.options import SfmOptions
     from dronecap.sfm.pipeline import run_sfm
-
-    from dronecap.errors import InputError
 
     opts = SfmOptions(min_registration=0.0, **overrides)
     try:

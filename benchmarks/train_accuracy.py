@@ -41,6 +41,7 @@ def dataset(gray: bool, cache: Path):
 def run(args: argparse.Namespace) -> None:
     """Train one configuration and write its JSON."""
     import torch
+
     from dronecap.nerf.config import parse_field, preset
     from dronecap.nerf.trainer import Trainer
 
@@ -114,9 +115,9 @@ def _write(name: str, obj: dict) -> None:
 
 def memory_mb(cfg_dict: dict) -> float:
     """Modelled GAP9 memory (MB, the paper's Table II accounting: parameters, gradients, Adam
-    state, activations, occupancy grid, image) of a run's configuration (nerf/gap9.py)."""
+    state, activations, occupancy grid, image) of a run's configuration (gap9/model.py)."""
+    from dronecap.gap9.model import cost_report
     from dronecap.nerf.config import TrainConfig
-    from dronecap.nerf.gap9 import cost_report
 
     d = dict(cfg_dict)
     d["betas"] = tuple(d["betas"])

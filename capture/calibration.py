@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 from dronecap.capture.framing import CameraModel, parse_numbers
-
 from dronecap.errors import InputError
 
 

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from dronecap.capture.calibration import load_intrinsics
 from dronecap.capture.decode import DecodedFrame, SourceInfo, open_source, prefetch, progress_stream
 from dronecap.capture.framing import LUMA_WEIGHTS, CameraModel, Framing, make_framing
@@ -24,7 +25,6 @@ from dronecap.capture.selection import (
     SelectionParams,
     select_frames,
 )
-
 from dronecap.errors import InputError
 
 MIN_KEPT = 2  # fewer kept frames leave nothing to reconstruct

@@ -26,9 +26,9 @@ import json
 from pathlib import Path
 
 import numpy as np
+
 from dronecap.datasets.bounds import carve_aabb, lookat_cube, near_far_from_aabb
 from dronecap.datasets.format import SPLITS, Dataset, Intrinsics, provenance, write_dataset
-
 from dronecap.errors import InputError
 
 LUMA_BT601 = (0.299, 0.587, 0.114)

@@ -10,6 +10,7 @@ OpenCV axes (x right, y down, z forward); intrinsics are in pixels with pixel ce
 from __future__ import annotations
 
 import numpy as np
+
 from dronecap.datasets.format import Intrinsics
 
 MIN_VIEWS = 2  # a voxel must be seen by at least this many views to count as evidence

@@ -21,9 +21,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from dronecap.datasets.blender import opencv_to_opengl
 from dronecap.datasets.format import SPLITS, Dataset, Intrinsics, open_dataset
-
 from dronecap.errors import InputError
 from dronecap.files import atomic_output
 

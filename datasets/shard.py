@@ -25,9 +25,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from dronecap.datasets.bounds import lookat_point
 from dronecap.datasets.format import SPLITS, Dataset, open_dataset, provenance, write_dataset
-
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, sha256_file
 

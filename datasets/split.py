@@ -11,8 +11,8 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-from dronecap.datasets.format import SPLITS, Dataset, open_dataset, provenance, write_dataset
 
+from dronecap.datasets.format import SPLITS, Dataset, open_dataset, provenance, write_dataset
 from dronecap.errors import InputError
 from dronecap.files import sha256_file
 

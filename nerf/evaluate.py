@@ -5,9 +5,10 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from dronecap.datasets.format import Dataset, Intrinsics
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from tqdm import tqdm
+
+from dronecap.datasets.format import Dataset, Intrinsics
 
 RenderFn = Callable[[np.ndarray, Intrinsics], np.ndarray]  # (c2w, K) -> float32 [H, W, C]
 

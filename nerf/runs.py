@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 from dronecap.datasets.format import Dataset, open_dataset
-
 from dronecap.errors import InputError
 
 from .trainer import CHECKPOINT, METRICS, RUN_INFO, Trainer, _write_json

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from dronecap.datasets.format import Dataset, Intrinsics
 from tqdm import tqdm
 
+from dronecap.datasets.format import Dataset, Intrinsics
 from dronecap.errors import InputError
 
 from . import occupancy

@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from dronecap.datasets.blender import opengl_to_opencv
 from dronecap.datasets.format import Dataset, Intrinsics
-
 from dronecap.errors import InputError
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from dronecap.sfm.options import SfmOptions
 
 TRAIN_DESCRIPTORS = 20000  # descriptors sampled to train the flight's visual vocabulary

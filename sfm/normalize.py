@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from dronecap.datasets.bounds import near_far_from_aabb
 
 

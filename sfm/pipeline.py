@@ -20,16 +20,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from dronecap.datasets.format import Dataset, open_dataset, provenance, write_dataset
+from dronecap.errors import InputError
+from dronecap.files import atomic_output, sha256_file
 from dronecap.sfm.align import accuracy_against, load_ground_truth
 from dronecap.sfm.colmap_steps import MIN_KEYPOINTS
 from dronecap.sfm.normalize import apply_to_points, apply_to_poses, near_far, normalize_scene
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.reconstruct import ColmapResult, intrinsics_from_colmap, reconstruct
 from dronecap.sfm.report import ADVICE, drop_reason, dropped_runs, format_report
-
-from dronecap.errors import InputError
-from dronecap.files import atomic_output, sha256_file
 
 MIN_FRAMES = 3
 

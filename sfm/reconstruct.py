@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from dronecap.datasets.format import Intrinsics
 from dronecap.sfm.colmap_steps import (
     MIN_KEYPOINTS,

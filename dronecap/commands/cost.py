@@ -24,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="a training run dir (its metrics.json or config.json gives the configuration)",
     )
     p.add_argument("--preset", help="a named preset (default: tiny-dronerf)")
-    p.add_argument("--platform", help="platform YAML (default: the shipped nerf/gap9.yaml)")
+    p.add_argument("--platform", help="platform YAML (default: the shipped gap9/gap9.yaml)")
     p.add_argument(
         "--set",
         dest="sets",
@@ -59,7 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _platform(args: argparse.Namespace):
     from dronecap.errors import InputError
-    from dronecap.nerf.gap9_platform import load_platform
+    from dronecap.gap9.platform import load_platform
 
     if args.platform is None:
         return load_platform()
@@ -75,8 +75,8 @@ def _config(args: argparse.Namespace):
     """(TrainConfig, default JSON path) from RUN_DIR, --preset or the default preset, + --set."""
     from dronecap import workspace
     from dronecap.errors import InputError
+    from dronecap.gap9.search import config_from_dict, parse_set
     from dronecap.nerf.config import preset
-    from dronecap.nerf.gap9_search import config_from_dict, parse_set
 
     if args.run_dir and args.preset:
         raise InputError("give either RUN_DIR or --preset, not both")
@@ -112,7 +112,7 @@ def _config(args: argparse.Namespace):
 
 def _bytes(text: str | None, flag: str) -> int | None:
     from dronecap.errors import InputError
-    from dronecap.nerf.gap9_platform import parse_bytes
+    from dronecap.gap9.platform import parse_bytes
 
     if text is None:
         return None
@@ -125,7 +125,7 @@ def _bytes(text: str | None, flag: str) -> int | None:
 def _report(args: argparse.Namespace) -> int:
     from dronecap.errors import InputError
     from dronecap.files import atomic_output
-    from dronecap.nerf.gap9 import cost_report, format_report
+    from dronecap.gap9.model import cost_report, format_report
 
     cfg, default_out = _config(args)
     try:
@@ -141,7 +141,7 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _table2(args: argparse.Namespace) -> int:
-    from dronecap.nerf.gap9_paper import table2
+    from dronecap.gap9.paper import table2
 
     rows = table2(_platform(args))
     head = f"{'Mem paper':>9} {'model':>7} {'err':>7}"
@@ -160,7 +160,7 @@ def _table2(args: argparse.Namespace) -> int:
 def _search(args: argparse.Namespace) -> int:
     from dronecap import workspace
     from dronecap.errors import InputError
-    from dronecap.nerf.gap9_search import (
+    from dronecap.gap9.search import (
         Budget,
         choose,
         evaluate,

@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     shards = _shards(src, out, args)
 
-    from dronecap.nerf import federated as fed
+    from dronecap.federated import run as fed
 
     s = fed.FedSettings(
         shards=[str(p) for p in shards],
@@ -129,11 +129,11 @@ def run(args: argparse.Namespace) -> int:
     if not rounds or rounds[-1]["round"] != s.rounds:
         raise InputError(f"the federation stopped after {len(rounds)} rounds; see the log", out)
     if args.baselines:
-        from dronecap.nerf.fedbaselines import merge_curves, run_baselines
+        from dronecap.federated.baselines import merge_curves, run_baselines
 
         run_baselines(out, s)
         merge_curves(out, s)
-    from dronecap.nerf.fedplot import plot_runs
+    from dronecap.federated.plot import plot_runs
 
     doc = json.loads((out / fed.ROUNDS).read_text())
     plot_runs({f"{args.scheme} ({s.n_clients} drones)": doc}, out / "psnr.png")

@@ -31,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Render the flight and print where it went."""
     from dronecap import workspace
-    from dronecap.capture.simulate import simulate
+    from dronecap.simulator.simulate import simulate
 
     out = workspace.resolve(args.workdir, args.output, "flight.mp4")
     t0 = time.perf_counter()

@@ -7,9 +7,9 @@ import json
 import cv2
 import numpy as np
 import pytest
+
 from dronecap.capture.calibration import load_intrinsics
 from dronecap.capture.framing import CameraModel, make_framing, parse_size, to_gray
-
 from dronecap.errors import InputError
 
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from dronecap.datasets import open_dataset
 
 from dronecap.cli import main
+from dronecap.datasets import open_dataset
 from tests.capture.conftest import pan, texture, write_video
 
 

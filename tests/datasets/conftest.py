@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
 from dronecap.datasets.blender import import_blender, opengl_to_opencv
 
 BOX = np.array([[-0.3, -0.2, -0.1], [0.3, 0.2, 0.4]])  # the synthetic scene's object (world units)

@@ -9,10 +9,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from dronecap.datasets.blender import import_blender, opengl_to_opencv
-from dronecap.datasets.format import SPLITS, Dataset, open_dataset
 
 from dronecap.cli import main
+from dronecap.datasets.blender import import_blender, opengl_to_opencv
+from dronecap.datasets.format import SPLITS, Dataset, open_dataset
 from dronecap.errors import InputError
 
 

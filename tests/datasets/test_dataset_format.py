@@ -7,6 +7,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+
 from dronecap.datasets.format import (
     FORMAT_VERSION,
     Dataset,

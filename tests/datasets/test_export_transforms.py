@@ -8,11 +8,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
+from dronecap.cli import main
 from dronecap.datasets.blender import import_blender, opengl_to_opencv
 from dronecap.datasets.export import export_transforms
 from dronecap.datasets.format import Dataset, Intrinsics, open_dataset, write_dataset
-
-from dronecap.cli import main
 from dronecap.errors import InputError
 
 

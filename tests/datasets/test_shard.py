@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from dronecap.cli import main
 from dronecap.datasets.format import SPLITS, Dataset, open_dataset, write_dataset
 from dronecap.datasets.shard import (
     azimuths,
@@ -15,8 +17,6 @@ from dronecap.datasets.shard import (
     sector_assignment,
     shard_dataset,
 )
-
-from dronecap.cli import main
 from dronecap.errors import InputError
 
 TRAIN, TEST = SPLITS["train"], SPLITS["test"]

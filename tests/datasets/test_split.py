@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dronecap.datasets.format import SPLITS, Dataset, open_dataset, write_dataset
-from dronecap.datasets.split import every_kth_split, split_dataset
 
 from dronecap.cli import main
+from dronecap.datasets.format import SPLITS, Dataset, open_dataset, write_dataset
+from dronecap.datasets.split import every_kth_split, split_dataset
 from dronecap.errors import InputError
 
 TRAIN, TEST = SPLITS["train"], SPLITS["test"]

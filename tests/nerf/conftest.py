@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from dronecap.datasets.format import Dataset, Intrinsics, write_dataset
 
 FACE_COLOURS = np.array(

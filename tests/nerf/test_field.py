@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import torch
+
 from dronecap.nerf.config import preset
 from dronecap.nerf.field import Field, auto_n_max, trunc_exp
 from dronecap.nerf.sh import sh_encode

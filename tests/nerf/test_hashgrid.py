@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+
 from dronecap.nerf.hashgrid import (
     HashGrid,
     hash_encode_cpp,

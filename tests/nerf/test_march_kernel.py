@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+
 from dronecap.nerf import march_kernel, marching
 from dronecap.nerf.occupancy import GridState
 from dronecap.nerf.rays import ray_aabb

@@ -4,6 +4,7 @@ import math
 
 import pytest
 import torch
+
 from dronecap.nerf import occupancy
 from dronecap.nerf.marching import march, take_rays
 from dronecap.nerf.rays import ray_aabb

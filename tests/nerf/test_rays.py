@@ -2,6 +2,7 @@
 
 import numpy as np
 import torch
+
 from dronecap.nerf.rays import camera_rays, ray_aabb
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])

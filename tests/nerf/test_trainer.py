@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+
 from dronecap.nerf.config import preset
 from dronecap.nerf.trainer import Trainer, TrainingDiverged
 

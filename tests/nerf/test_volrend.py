@@ -4,6 +4,7 @@ import math
 
 import pytest
 import torch
+
 from dronecap.nerf.volrend import packed_weights, render_packed
 
 

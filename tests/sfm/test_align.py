@@ -6,6 +6,8 @@ import json
 
 import numpy as np
 import pytest
+
+from dronecap.errors import InputError
 from dronecap.sfm.align import (
     DegenerateAlignment,
     accuracy_against,
@@ -14,8 +16,6 @@ from dronecap.sfm.align import (
     rotation_angle_deg,
     umeyama,
 )
-
-from dronecap.errors import InputError
 
 
 def rot_z(deg: float) -> np.ndarray:

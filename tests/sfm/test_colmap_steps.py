@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from dronecap.sfm.colmap_steps import mapper_options
 from dronecap.sfm.options import SfmOptions
 

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import pytest
-from dronecap.sfm.isolate import ChildCrash, run_isolated
 
 from dronecap.errors import InputError
+from dronecap.sfm.isolate import ChildCrash, run_isolated
 
 CHILD = """
 import os

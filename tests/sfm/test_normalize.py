@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from dronecap.sfm.normalize import (
     NormalizeSettings,
     apply_to_points,

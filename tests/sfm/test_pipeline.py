@@ -6,14 +6,14 @@ import json
 
 import numpy as np
 import pytest
+
+from dronecap.cli import main as cli_main
 from dronecap.datasets.format import Dataset, open_dataset, write_dataset
+from dronecap.errors import InputError
+from dronecap.files import sha256_file
 from dronecap.sfm.blender_flight import blender_flight
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.pipeline import run_sfm
-
-from dronecap.cli import main as cli_main
-from dronecap.errors import InputError
-from dronecap.files import sha256_file
 
 
 def write_flight(tmp_path, ds: Dataset, gt: dict | None = None):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+
 from dronecap.sfm.report import drop_reason, dropped_runs, format_report
 
 

@@ -7,8 +7,9 @@ import json
 from pathlib import Path
 
 import pytest
-from dronecap.nerf.config import preset
-from dronecap.nerf.gap9_search import (
+
+from dronecap.cli import main
+from dronecap.gap9.search import (
     Budget,
     Point,
     choose,
@@ -17,8 +18,7 @@ from dronecap.nerf.gap9_search import (
     parse_set,
     search,
 )
-
-from dronecap.cli import main
+from dronecap.nerf.config import preset
 
 
 def _metrics(run: Path, name: str, psnr: float) -> Path:

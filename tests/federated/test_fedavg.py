@@ -6,9 +6,12 @@ import dataclasses
 
 import numpy as np
 import pytest
+from flwr.app import Message, MessageType, MetricRecord, RecordDict
+from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
+from flwr.supercore.task_identity import TaskIdentity
+
 from dronecap.datasets.format import Dataset, Intrinsics, write_dataset
-from dronecap.nerf.config import preset
-from dronecap.nerf.fedavg import (
+from dronecap.federated.fedavg import (
     CODEC,
     WEIGHT_KEY,
     DroneFedAvg,
@@ -20,9 +23,7 @@ from dronecap.nerf.fedavg import (
     unpack_update,
     weighted_mean,
 )
-from flwr.app import Message, MessageType, MetricRecord, RecordDict
-from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
-from flwr.supercore.task_identity import TaskIdentity
+from dronecap.nerf.config import preset
 
 
 def _reply(update: dict[str, np.ndarray], n_images: int, compress: bool = False) -> RecordDict:
@@ -158,7 +159,7 @@ def test_compression_shrinks_hash_table_like_fp16_values():
 
 
 def test_union_of_shards_keeps_every_train_frame(tmp_path):
-    from dronecap.nerf.fedbaselines import union_train
+    from dronecap.federated.baselines import union_train
 
     k = Intrinsics(10.0, 10.0, 2.0, 2.0, 4, 4)
 
@@ -188,8 +189,9 @@ def test_rebuilt_grid_hides_less_than_one_probe_per_cell(cube_rgb):
     renders closer to what the model renders with no empty-space skipping than a grid from
     one probe per cell does, and about as close as the grid training maintained."""
     import torch
+
+    from dronecap.federated.run import rebuild_grid
     from dronecap.nerf import occupancy
-    from dronecap.nerf.federated import rebuild_grid
     from dronecap.nerf.trainer import Trainer
 
     tr = Trainer(preset("test").replace(grid_res=16, steps=600), cube_rgb)

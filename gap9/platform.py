@@ -1,4 +1,4 @@
-"""The platform a configuration is costed on: GAP9 by default, read from ``nerf/gap9.yaml``.
+"""The platform a configuration is costed on: GAP9 by default, read from ``gap9/gap9.yaml``.
 
 A :class:`Platform` holds three kinds of numbers, each one field with its unit:
 
@@ -6,7 +6,7 @@ A :class:`Platform` holds three kinds of numbers, each one field with its unit:
   datasheet figures the paper quotes;
 - numerics of the embedded implementation (bytes of each stored quantity) and its tiling choices;
 - the calibration constants of the latency model (effective throughput of each kernel class),
-  fitted on the paper's published kernel latencies (see :func:`dronecap.nerf.gap9_paper.calibrate`).
+  fitted on the paper's published kernel latencies (see :func:`dronecap.gap9.paper.calibrate`).
 
 Byte sizes may be written with units: ``B``, ``kB``/``MB``/``GB`` (powers of 10, as the paper
 counts) or ``KiB``/``MiB``/``GiB`` (powers of 2, as RAM sizes are).
@@ -80,7 +80,7 @@ class Numerics:
 
 @dataclass
 class Calibration:
-    """Effective throughputs of the kernel classes (fitted; see gap9_paper.calibrate)."""
+    """Effective throughputs of the kernel classes (fitted; see gap9.paper.calibrate)."""
 
     mlp_fwd_ops_per_cycle: float = (
         5.47  # fp16 SIMD matmul, forward (peak 16 = 4 FPU x 2 lanes x FMA)
@@ -153,7 +153,7 @@ def platform_from_dict(data: dict[str, Any], base: Platform | None = None) -> Pl
 
 
 def load_platform(path: str | Path | None = None) -> Platform:
-    """Read a platform YAML (default: the shipped ``nerf/gap9.yaml``).
+    """Read a platform YAML (default: the shipped ``gap9/gap9.yaml``).
 
     Raises:
         FileNotFoundError if the file is missing; ValueError if it is not a valid description.

@@ -18,7 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from dronecap.capture.textures import MipTexture, add_posters, camo, tiles
+
+from dronecap.simulator.textures import MipTexture, add_posters, camo, tiles
 
 TEXEL = 0.005  # metres per texel of the wall/floor textures
 Albedo = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]

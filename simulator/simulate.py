@@ -19,13 +19,13 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-from dronecap.capture.flights import Flight
-from dronecap.capture.render import Renderer, SimCamera
-from dronecap.capture.scenes import SCENES
-from dronecap.capture.video import write_gray_video
 
 from dronecap.errors import InputError
 from dronecap.files import atomic_output
+from dronecap.simulator.flights import Flight
+from dronecap.simulator.render import Renderer, SimCamera
+from dronecap.simulator.scenes import SCENES
+from dronecap.simulator.video import write_gray_video
 
 FPS = 30.0
 

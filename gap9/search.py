@@ -18,9 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dronecap.gap9.model import cost_report
+from dronecap.gap9.platform import Platform
 from dronecap.nerf.config import TrainConfig, preset
-from dronecap.nerf.gap9 import cost_report
-from dronecap.nerf.gap9_platform import Platform
 
 # The sweep: batch B, log2(T), image side, occupancy grid side, MLP width, hash levels.
 SEARCH_GRID: dict[str, tuple] = {
@@ -157,7 +157,7 @@ def load_runs(paths: list[str | Path]) -> list[Point]:
 
 def paper_points() -> list[Point]:
     """The paper's Table II PSNRs at the preset configurations (the 160 px rows)."""
-    from dronecap.nerf.gap9_paper import TABLE2
+    from dronecap.gap9.paper import TABLE2
 
     return [Point(name, preset(name), psnr) for name, (_, _, psnr) in TABLE2.items()]
 

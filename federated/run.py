@@ -41,9 +41,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from flwr.app import ConfigRecord, Context, Message, MessageType, MetricRecord, RecordDict
+from flwr.clientapp import ClientApp
+from flwr.serverapp import Grid, ServerApp
+
 from dronecap.datasets.format import Dataset, open_dataset
-from dronecap.nerf.config import TrainConfig
-from dronecap.nerf.fedavg import (
+from dronecap.federated.fedavg import (
     WEIGHT_KEY,
     DroneFedAvg,
     from_record,
@@ -52,11 +55,8 @@ from dronecap.nerf.fedavg import (
     to_record,
     unpack_update,
 )
-from flwr.app import ConfigRecord, Context, Message, MessageType, MetricRecord, RecordDict
-from flwr.clientapp import ClientApp
-from flwr.serverapp import Grid, ServerApp
-
 from dronecap.files import atomic_output
+from dronecap.nerf.config import TrainConfig
 
 log = logging.getLogger("dronecap.federate")
 
@@ -441,7 +441,7 @@ def link_time(n_bytes: int) -> float | None:
     """Modelled seconds to send ``n_bytes`` over the drone radio (the GAP9 cost model's link);
     None while that model is not installed."""
     try:
-        from dronecap.nerf.gap9 import link_time_s
+        from dronecap.gap9.model import link_time_s
     except ImportError:
         return None
     return float(link_time_s(n_bytes))
@@ -494,8 +494,8 @@ dependencies = []
 publisher = "dronecap"
 
 [tool.flwr.app.components]
-serverapp = "dronecap.nerf.federated:serverapp"
-clientapp = "dronecap.nerf.federated:clientapp"
+serverapp = "dronecap.federated.run:serverapp"
+clientapp = "dronecap.federated.run:clientapp"
 
 [tool.flwr.app.config]
 run-dir = ""

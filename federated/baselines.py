@@ -20,15 +20,15 @@ import json
 from pathlib import Path
 
 import numpy as np
+
 from dronecap.datasets.format import Dataset
-from dronecap.nerf.federated import (
+from dronecap.federated.run import (
     FedSettings,
     load_rounds,
     save_rounds,
     test_split,
     train_split,
 )
-
 from dronecap.files import atomic_output
 
 

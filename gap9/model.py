@@ -14,7 +14,7 @@ The implementation modelled (the paper's Deployment section):
 
 Public API: :func:`cost_report`, :func:`format_report`, :func:`federated_payload`,
 :func:`link_time_s`, :class:`Platform`, :func:`load_platform`. All sizes in bytes, times in
-seconds, energies in joules, ops as counted in :mod:`dronecap.nerf.gap9_arch`.
+seconds, energies in joules, ops as counted in :mod:`dronecap.gap9.arch`.
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from dronecap.nerf import gap9_arch as arch
+from dronecap.gap9 import arch
+from dronecap.gap9.platform import Platform, load_platform
+from dronecap.gap9.report_format import format_report
 from dronecap.nerf.config import TrainConfig
-from dronecap.nerf.gap9_format import format_report
-from dronecap.nerf.gap9_platform import Platform, load_platform
 
 __all__ = [
     "Platform",
@@ -362,7 +362,7 @@ def cost_report(
 
     Args:
         cfg: the trainer configuration.
-        platform: target; default :func:`load_platform` (nerf/gap9.yaml).
+        platform: target; default :func:`load_platform` (gap9/gap9.yaml).
         samples_per_pixel: average samples per ray after empty-space skipping (paper: 13); sets
             rays per tile and the render cost.
         n_images: training images the drone stores in L3 (default ``cfg.train_images``).

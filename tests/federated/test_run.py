@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from dronecap.nerf.config import preset
 
 SMALL = dict(pretrain=12, local_steps=6, rounds=2, eval_views=2)
@@ -41,10 +42,11 @@ def lego_shards(lego_h5, tmp_path_factory) -> list[str]:
 
 @pytest.mark.data
 def test_simulation_two_drones_with_a_failing_client(lego_shards, tmp_path):
-    from dronecap.nerf.fedavg import pack_update, payload_bytes, to_record
-    from dronecap.nerf.federated import FedSettings, round_file, run_simulated, save_settings
-    from dronecap.nerf.trainer import Trainer
     from flwr.app import RecordDict
+
+    from dronecap.federated.fedavg import pack_update, payload_bytes, to_record
+    from dronecap.federated.run import FedSettings, round_file, run_simulated, save_settings
+    from dronecap.nerf.trainer import Trainer
 
     run = tmp_path / "run"
     s = FedSettings(
@@ -108,7 +110,7 @@ def _check_server_momentum_step(run: Path, rounds: int, lr: float, beta: float) 
     """Every round's global model is FedAvgM's step from the previous one, across the resume:
     ``m_r = beta m_{r-1} + (x_{r-1} - avg_r)``, ``x_r = x_{r-1} - lr m_r``, with ``avg_r`` the
     mean of the drones' fp16 models (equal shards) and ``m_r`` as saved after round r."""
-    from dronecap.nerf.federated import load_momentum, round_file
+    from dronecap.federated.run import load_momentum, round_file
     from dronecap.nerf.trainer import Trainer
 
     def weights(path: Path) -> dict[str, np.ndarray]:
@@ -178,7 +180,7 @@ def test_cli_interrupted_run_resumes_from_last_round(lego_h5, tmp_path):
 @pytest.mark.data
 def test_deployment_superlink_and_supernodes_on_loopback(lego_shards, tmp_path):
     """The same apps with real SuperLink/SuperNode processes (the commands of --deployment)."""
-    from dronecap.nerf.federated import FedSettings, load_rounds, save_settings, write_deployment
+    from dronecap.federated.run import FedSettings, load_rounds, save_settings, write_deployment
 
     run = tmp_path / "run"
     save_settings(

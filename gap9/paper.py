@@ -17,10 +17,11 @@ How the rows are evaluated (see docs/gap9.md for the evidence):
 from __future__ import annotations
 
 import numpy as np
-from dronecap.nerf import gap9_arch as arch
+
+from dronecap.gap9 import arch
+from dronecap.gap9.model import cost_report, federated_payload, link_time_s
+from dronecap.gap9.platform import Calibration, Platform
 from dronecap.nerf.config import TABLE2_ROWS, TrainConfig, preset
-from dronecap.nerf.gap9 import cost_report, federated_payload, link_time_s
-from dronecap.nerf.gap9_platform import Calibration, Platform
 
 TABLE2_STEPS = 35_000  # Instant-NGP's training schedule, over which Table II amortises the grid
 

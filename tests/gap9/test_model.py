@@ -5,9 +5,9 @@ from __future__ import annotations
 import json
 
 import pytest
-from dronecap.nerf import gap9_arch as arch
-from dronecap.nerf.config import TrainConfig, preset
-from dronecap.nerf.gap9 import (
+
+from dronecap.gap9 import arch
+from dronecap.gap9.model import (
     cost_report,
     federated_payload,
     format_report,
@@ -17,7 +17,7 @@ from dronecap.nerf.gap9 import (
     load_platform,
     total_memory,
 )
-from dronecap.nerf.gap9_paper import (
+from dronecap.gap9.paper import (
     DEPLOYMENT,
     TABLE2,
     calibrate,
@@ -25,7 +25,8 @@ from dronecap.nerf.gap9_paper import (
     paper_sum_per_tile,
     table2,
 )
-from dronecap.nerf.gap9_platform import Platform, parse_bytes, platform_from_dict
+from dronecap.gap9.platform import Platform, parse_bytes, platform_from_dict
+from dronecap.nerf.config import TrainConfig, preset
 
 # A 2-level toy: T = 2^5 = 32, levels at res 2 and 4 (n_min 2, n_max 4), F = 2; MLPs 4 wide with
 # one hidden layer each; 3 geometry features; SH degree 1 (1 coefficient); gray (C = 1);

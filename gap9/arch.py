@@ -16,8 +16,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from dronecap.gap9.platform import Numerics
 from dronecap.nerf.config import TrainConfig
-from dronecap.nerf.gap9_platform import Numerics
 
 # --- multiresolution hash encoding, per level and per cell corner ----------------------------
 HASH_LEVEL_OPS = 12  # scale x by res (3 mul), floor (3), fraction (3 sub), 1 - fraction (3 sub)

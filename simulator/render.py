@@ -12,7 +12,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from dronecap.capture.scenes import Scene
+
+from dronecap.simulator.scenes import Scene
 
 MAX_SUBFRAMES = 8
 

@@ -7,11 +7,11 @@ import json
 import cv2
 import numpy as np
 import pytest
-from dronecap.capture.flights import camera_to_world
-from dronecap.capture.simulate import render_flight
-from dronecap.datasets import open_dataset
 
 from dronecap.cli import main
+from dronecap.datasets import open_dataset
+from dronecap.simulator.flights import camera_to_world
+from dronecap.simulator.simulate import render_flight
 
 
 @pytest.fixture(scope="module")

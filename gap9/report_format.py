@@ -1,8 +1,8 @@
-"""Readable text of a GAP9 cost report (the dict of :func:`dronecap.nerf.gap9.cost_report`)."""
+"""Readable text of a GAP9 cost report (the dict of :func:`dronecap.gap9.model.cost_report`)."""
 
 from __future__ import annotations
 
-from dronecap.nerf.gap9_platform import format_bytes
+from dronecap.gap9.platform import format_bytes
 
 
 def _s(t: float) -> str:
