@@ -17,7 +17,8 @@ Every stage exchanges data through these files (``frames.h5``, ``posed.h5``, ``d
            distortion model + params, aabb [2, 3], normalization [4, 4], background,
            provenance (JSON: stage, params, input hashes, created)
 
-Intrinsics are pinhole in pixels of the stored resolution, pixel centres at integer + 0.5
+Intrinsics (:class:`dronecap.camera.Camera`: fx, fy, cx, cy plus a lens-distortion model) are in
+pixels of the stored resolution, pixel centres at integer + 0.5
 (OpenCV convention: the centre of the top-left pixel is (0.5, 0.5) in continuous coordinates,
 so a pixel (u, v) index maps to the ray through (u + 0.5, v + 0.5)).
 """
@@ -34,6 +35,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from dronecap.camera import Camera
 from dronecap.errors import InputError
 from dronecap.files import atomic_output
 
@@ -41,40 +43,11 @@ FORMAT = "dronecap"
 FORMAT_VERSION = 1
 KINDS = ("frames", "posed", "dataset", "shard")
 SPLITS = {"train": 0, "val": 1, "test": 2}
+Intrinsics = Camera  # the stored camera: dronecap.camera.Camera (one camera type)
 
 
 class DatasetError(InputError):
     """A dataset file that cannot be used: foreign, newer, truncated or inconsistent."""
-
-
-@dataclass
-class Intrinsics:
-    """Pinhole camera in pixels of the stored image size, plus optional distortion."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    model: str = "PINHOLE"  # COLMAP model name when SfM estimated one
-    distortion: tuple[float, ...] = ()  # that model's extra parameters (e.g. k for SIMPLE_RADIAL)
-
-    def matrix(self) -> np.ndarray:
-        """3x3 K matrix, float64."""
-        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], float)
-
-    def scaled(self, sx: float, sy: float) -> Intrinsics:
-        """Intrinsics after resizing the image by (sx, sy) (new_size / old_size)."""
-        return dataclasses.replace(
-            self,
-            fx=self.fx * sx,
-            fy=self.fy * sy,
-            cx=self.cx * sx,
-            cy=self.cy * sy,
-            width=round(self.width * sx),
-            height=round(self.height * sy),
-        )
 
 
 @dataclass
@@ -190,8 +163,8 @@ class Dataset:
             k = self.intrinsics
             if (k.width, k.height) != (w, h):
                 fail(f"intrinsics are for {k.width}x{k.height} but images are {w}x{h}")
-            if not (k.fx > 0 and k.fy > 0):
-                fail(f"focal lengths must be positive, found fx={k.fx}, fy={k.fy}")
+            for problem in k.problems():
+                fail(problem)
         if self.background is not None and len(self.background) != im.shape[3]:
             fail(f"background has {len(self.background)} values for {im.shape[3]} channels")
 

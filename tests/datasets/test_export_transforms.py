@@ -94,14 +94,17 @@ def test_distortion_is_exported_as_opencv(tmp_path: Path) -> None:
     assert (meta["k1"], meta["k2"], meta["p1"], meta["p2"]) == (0.05, 0.0, 0.0, 0.0)
 
 
-@pytest.mark.parametrize("case", ["model", "no_poses"])
+def test_unknown_camera_model_is_refused_at_write(tmp_path: Path) -> None:
+    k = Intrinsics(10.0, 10.0, 4.0, 3.0, 8, 6, "FISHEYE_WEIRD", (0.1, 0.2))
+    with pytest.raises(InputError, match="unknown camera model"):
+        write_dataset(tmp_path / "d.h5", small_dataset(3, False, k))
+    assert not (tmp_path / "d.h5").exists()
+
+
+@pytest.mark.parametrize("case", ["no_poses"])
 def test_unexportable_inputs(tmp_path: Path, case: str) -> None:
-    if case == "model":
-        k = Intrinsics(10.0, 10.0, 4.0, 3.0, 8, 6, "FISHEYE_WEIRD", (0.1, 0.2))
-        ds = small_dataset(3, False, k)
-    else:
-        ds = small_dataset(3, False)
-        ds.poses = None
+    ds = small_dataset(3, False)
+    ds.poses = None
     src = write_dataset(tmp_path / "d.h5", ds)
     with pytest.raises(InputError) as err:
         export_transforms(src, tmp_path / "x")
