@@ -4,7 +4,7 @@
   area resize), scores it and selects frames; :func:`select_frames` replays the selection from
   stored score tables.
 
-Heavy libraries (OpenCV, open3d, tqdm) are imported inside the functions that use them.
+Heavy libraries (OpenCV, open3d) are imported inside the functions that use them.
 """
 
 from dronecap.capture.ingest import (

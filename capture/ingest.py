@@ -163,7 +163,7 @@ def _decode_and_score(
     frames: Iterator[DecodedFrame], framing: Framing, info: SourceInfo, progress: bool
 ) -> tuple[list[np.ndarray], dict[str, np.ndarray]]:
     """Convert and score every frame; returns the small frames and the tables [N]."""
-    from tqdm import tqdm
+    from dronecap.progress import progress_bar
 
     def convert() -> Iterator[tuple[DecodedFrame, np.ndarray | None]]:
         for f in frames:
@@ -174,7 +174,7 @@ def _decode_and_score(
     rows: list[tuple[float, ...]] = []
     small: list[np.ndarray] = []
     meta: list[tuple[int, float, str, bool]] = []
-    bar = tqdm(
+    bar = progress_bar(
         prefetch(convert()),
         total=info.expected_frames,
         unit="frame",

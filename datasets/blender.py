@@ -68,7 +68,7 @@ def import_blender(
         out_path: the ``.h5`` to write (atomically).
         resolution: stored image width in pixels (height keeps the source aspect ratio).
         color: "rgb" (C = 3) or "gray" (C = 1, BT.601 luma).
-        progress: show a tqdm bar while reading images.
+        progress: show progress while reading images.
 
     Returns:
         ``out_path`` as a Path.
@@ -76,7 +76,7 @@ def import_blender(
     Raises:
         InputError: missing/invalid JSON or images, unknown colour, bad resolution.
     """
-    from tqdm import tqdm
+    from dronecap.progress import progress_bar
 
     scene_dir = Path(scene_dir)
     if color not in ("rgb", "gray"):
@@ -91,7 +91,7 @@ def import_blender(
 
     images, alpha, files = [], [], []
     src_size = None
-    for _, _, fr in tqdm(frames, desc="import-blender", unit="img", disable=not progress):
+    for _, _, fr in progress_bar(frames, desc="import-blender", unit="img", disable=not progress):
         path = _image_path(scene_dir, fr)
         rgba = _read_rgba(path)
         if src_size is None:

@@ -6,9 +6,9 @@ from collections.abc import Callable
 
 import numpy as np
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
-from tqdm import tqdm
 
 from dronecap.datasets.format import Dataset, Intrinsics
+from dronecap.progress import progress_bar
 
 RenderFn = Callable[[np.ndarray, Intrinsics], np.ndarray]  # (c2w, K) -> float32 [H, W, C]
 
@@ -62,7 +62,7 @@ def evaluate_views(
     """
     idx = test_views(ds) if views is None else np.asarray(views, np.int64)
     per_view, images = [], []
-    for i in tqdm(idx, desc="evaluate", unit="view", disable=not progress):
+    for i in progress_bar(idx, desc="evaluate", unit="view", disable=not progress):
         pred = render(ds.poses[i], ds.intrinsics)
         p, s = image_metrics(pred, ground_truth(ds, int(i), background))
         per_view.append({"index": int(i), "psnr": p, "ssim": s})

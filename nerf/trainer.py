@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from dronecap.datasets.format import Dataset, Intrinsics
 from dronecap.errors import InputError
+from dronecap.progress import progress_bar
 
 from . import occupancy
 from .checkpoint import read_checkpoint, write_checkpoint
@@ -319,7 +319,7 @@ class Trainer:
             raise InputError("trainer has no training data (pass `train=` to Trainer.load)")
         self.field.train()
         logs = []
-        bar = tqdm(
+        bar = progress_bar(
             range(steps),
             desc="train",
             unit="step",
@@ -614,7 +614,7 @@ def train_run(
     )
     ms: list[float] = []
     history: list[dict] = []
-    bar = tqdm(
+    bar = progress_bar(
         total=cfg.steps,
         initial=trainer.step,
         desc="train",

@@ -159,7 +159,8 @@ def reconstruct(
     """
     import cv2
     import pycolmap
-    from tqdm import tqdm
+
+    from dronecap.progress import progress_bar
 
     if work.exists():
         shutil.rmtree(work)
@@ -171,7 +172,7 @@ def reconstruct(
         cv2.imwrite(str(work / "images" / name), gray)
     times = {"write_images": time.perf_counter() - t}
 
-    bar = tqdm(total=len(names), desc="sfm", unit="frame", disable=not progress)
+    bar = progress_bar(total=len(names), desc="sfm", unit="frame", disable=not progress)
 
     def on_event(ev: tuple[Any, ...]) -> None:
         if ev[0] == "phase":

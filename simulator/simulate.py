@@ -94,12 +94,12 @@ def simulate(
     Returns:
         (video path, ground-truth JSON path); both are written atomically.
     """
-    from tqdm import tqdm
+    from dronecap.progress import progress_bar
 
     video = Path(video)
     gt_path = video.with_suffix(".json")
     images, doc = render_flight(scene_name, frames, seed)
-    bar = tqdm(
+    bar = progress_bar(
         images,
         total=frames,
         unit="frame",

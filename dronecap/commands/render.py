@@ -28,13 +28,12 @@ def run(args: argparse.Namespace) -> int:
     """Render and write the images."""
     from pathlib import Path
 
-    from tqdm import tqdm
-
     from dronecap import workspace
     from dronecap.errors import InputError
     from dronecap.nerf.evaluate import test_views
     from dronecap.nerf.outputs import orbit_poses, write_mp4, write_png
     from dronecap.nerf.runs import open_run
+    from dronecap.progress import progress_bar
 
     run_dir = workspace.resolve(args.workdir, args.run_dir, workspace.TRAIN_RUN)
     use_torch_threads(args.threads)
@@ -52,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
         poses = ds.poses[idx]
         names = [f"test_{i:03d}" for i in idx]
     frames = []
-    for pose, name in tqdm(
+    for pose, name in progress_bar(
         list(zip(poses, names, strict=True)), desc="render", unit="view", disable=args.no_progress
     ):
         img = trainer.render(pose, ds.intrinsics)
