@@ -35,6 +35,21 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class _HelpWithDefaults(argparse.HelpFormatter):
+    """Every option's help ends with its default, unless the text already states one."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        shown = action.default not in (None, False, [], argparse.SUPPRESS)
+        if shown and action.option_strings and "default" not in text:
+            text += " (default: %(default)s)"
+        return text
+
+
+# Global flags, given before the command: `dronecap -q train ...`.
+VERBOSITY = {"-q": "off", "--quiet": "off", "-v": "log", "--verbose": "log"}
+
+
 def _top_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="dronecap",
@@ -42,6 +57,10 @@ def _top_parser() -> argparse.ArgumentParser:
         epilog="Run `dronecap COMMAND --help` for a command's options.",
     )
     p.add_argument("--version", action="version", version="dronecap 0.1.0")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.add_argument(
+        "-v", "--verbose", action="store_true", help="progress as a line every second, also in logs"
+    )
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, help_) in COMMANDS.items():
         sub.add_parser(name, help=help_, add_help=False)
@@ -51,7 +70,9 @@ def _top_parser() -> argparse.ArgumentParser:
 def build_parser(name: str) -> tuple[argparse.ArgumentParser, object]:
     """The full parser of one sub-command and its module (imports that module)."""
     module = importlib.import_module(f"dronecap.commands.{COMMANDS[name][0]}")
-    p = argparse.ArgumentParser(prog=f"dronecap {name}", description=module.HELP)
+    p = argparse.ArgumentParser(
+        prog=f"dronecap {name}", description=module.HELP, formatter_class=_HelpWithDefaults
+    )
     p.add_argument(
         "--workdir",
         default=".",
@@ -64,6 +85,8 @@ def build_parser(name: str) -> tuple[argparse.ArgumentParser, object]:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    while argv and argv[0] in VERBOSITY:
+        _set_verbosity(VERBOSITY[argv.pop(0)])
     if not argv or argv[0] not in COMMANDS:
         _top_parser().parse_args(argv or ["--help"])
         return 2
@@ -82,6 +105,17 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 130
+
+
+def _set_verbosity(mode: str) -> None:
+    """-q: no progress at all; -v: progress lines every second even when not on a terminal."""
+    import os
+
+    from dronecap import progress
+
+    os.environ[progress.ENV] = mode
+    if mode == "log":
+        progress.LOG_EVERY_S = 1.0
 
 
 if __name__ == "__main__":

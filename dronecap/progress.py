@@ -39,14 +39,15 @@ class LogProgress:
         unit: str = "it",
         initial: int = 0,
         disable: bool = False,
-        every_s: float = LOG_EVERY_S,
+        every_s: float | None = None,
         **_: Any,
     ) -> None:
         self.iterable = iterable
         if total is None and iterable is not None and hasattr(iterable, "__len__"):
             total = len(iterable)  # type: ignore[arg-type]
         self.total, self.desc, self.unit, self.n = total, desc, unit, initial
-        self.disable, self.every_s = disable, every_s
+        self.disable = disable
+        self.every_s = LOG_EVERY_S if every_s is None else every_s
         self.t0 = self.last = time.monotonic()
         self.postfix = ""
         self.closed = False
