@@ -686,7 +686,7 @@ def evaluate_run(trainer: Trainer, ds: Dataset, out: Path, progress: bool = True
 
 def _write_cost(trainer: Trainer, ds: Dataset, out: Path) -> None:
     """``cost.json`` from the GAP9 model for this run's resolved configuration."""
-    from .gap9 import cost_report
+    from dronecap.gap9.model import cost_report
 
     h, w = ds.hw
     cfg = trainer.cfg.replace(
