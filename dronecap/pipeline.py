@@ -8,7 +8,10 @@ figure. A stage is skipped when its key matches a completed stamp, like ``dvc re
 
 A stage that was interrupted leaves a "running" stamp with its key: run again with the same
 key, it keeps its folder so that a resumable command (``train``) continues from its checkpoint;
-with another key the folder is cleared first.
+with another key the folder is cleared first. Parameters that only say how to compute
+(:data:`RESOURCE_PARAMS`: threads, progress output) are not part of the key, and a parameter that
+only extends the work (:data:`EXTENDS`: more training ``steps``) keeps the folder, so the trainer
+resumes from its checkpoint instead of starting over.
 """
 
 from __future__ import annotations
@@ -22,11 +25,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dronecap import workspace
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, sha256_file
 from dronecap.pipeline_spec import Pipeline, Stage, param_actions, substitute
 
 STAMP = ".dronecap-stage.json"
+# Parameters that change how a stage computes, not what it computes: never part of the cache key.
+RESOURCE_PARAMS = frozenset({"threads", "num_threads", "no_progress", "quiet", "checkpoint_every"})
+# command -> parameters whose change only extends the previous output (kept, then resumed).
+EXTENDS: dict[str, frozenset[str]] = {"train": frozenset({"steps"})}
 
 
 @dataclass
@@ -78,10 +86,18 @@ def input_files(params: dict[str, Any]) -> list[Path]:
     return found
 
 
-def cache_key(command: str, argv: list[str], hashes: dict[str, str]) -> str:
-    """Hash of what determines a stage's output: its command line and its inputs' contents."""
-    blob = json.dumps({"command": command, "argv": argv, "inputs": hashes}, sort_keys=True)
+def cache_key(command: str, params: dict[str, Any], hashes: dict[str, str]) -> str:
+    """Hash of what determines a stage's output: its parameters (less the resource ones) and its
+    inputs' contents."""
+    kept = {k: v for k, v in params.items() if k not in RESOURCE_PARAMS}
+    blob = json.dumps({"command": command, "params": kept, "inputs": hashes}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def _changed(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """Parameters (less the resource ones) whose values differ between two runs."""
+    keys = (set(old) | set(new)) - RESOURCE_PARAMS
+    return sorted(k for k in keys if old.get(k) != new.get(k))
 
 
 def read_stamp(stage_dir: Path) -> dict[str, Any] | None:
@@ -120,16 +136,19 @@ class Runner:
         self.last = ids.index(until) if until else len(ids) - 1
         self.stage_dirs = {sid: self.dir / sid for sid in ids}
 
-    def _plan(self, stage: Stage) -> tuple[list[str], dict[str, str], str]:
+    def _plan(self, stage: Stage) -> tuple[dict[str, Any], list[str], dict[str, str], str]:
         params = {
             k: substitute(v, self.pipeline.vars, self.stage_dirs) for k, v in stage.params.items()
         }
-        argv = stage_argv(stage, self.parsers[stage.command], params)
         hashes = {str(p): sha256_file(p) for p in input_files(params)}
-        return argv, hashes, cache_key(stage.command, argv, hashes)
+        folder = workspace.STAGE_FOLDER_OPTION.get(stage.command)
+        if folder and folder not in params:
+            params[folder] = str(self.stage_dirs[stage.id])
+        argv = stage_argv(stage, self.parsers[stage.command], params)
+        return params, argv, hashes, cache_key(stage.command, params, hashes)
 
     def _why(
-        self, stage: Stage, stamp: dict[str, Any] | None, argv: list[str], hashes: dict, key: str
+        self, stage: Stage, stamp: dict[str, Any] | None, params: dict, hashes: dict, key: str
     ) -> str:
         if stage.id in self.force:
             return "forced"
@@ -139,10 +158,23 @@ class Runner:
             if stamp.get("key") == key:
                 return "previous run did not finish (resuming)"
             return "previous run did not finish, with other inputs (starting over)"
-        if stamp.get("argv") != argv:
-            return f"parameters changed: {' '.join(stamp.get('argv', []))} -> {' '.join(argv)}"
+        changed = _changed(stamp.get("params", {}), params)
+        if changed:
+            old, new = stamp.get("params", {}), params
+            diff = ", ".join(f"{k}: {old.get(k)} -> {new.get(k)}" for k in changed)
+            return f"parameters changed ({diff})"
         changed = [p for p, h in hashes.items() if stamp.get("inputs", {}).get(p) != h]
         return f"input changed: {', '.join(changed)}" if changed else "up to date"
+
+    def _keeps_folder(self, stage: Stage, stamp: dict[str, Any] | None, params: dict, key: str):
+        """True when the stage's folder is resumed, not cleared: an interrupted run with the same
+        key, or a finished one whose only change extends it (more steps) with the same inputs."""
+        if stamp is None or stage.id in self.force:
+            return False
+        if stamp.get("status") != "done":
+            return stamp.get("key") == key
+        changed = set(_changed(stamp.get("params", {}), params))
+        return bool(changed) and changed <= EXTENDS.get(stage.command, frozenset())
 
     def run(self, dry_run: bool = False) -> list[StageResult]:
         """Run (or with ``dry_run`` only explain) the stages; stops at the first failure."""
@@ -162,8 +194,8 @@ class Runner:
                 results.append(StageResult(stage.id, "would run", f"upstream {pending[0]} runs"))
                 upstream_runs.add(stage.id)
                 continue
-            argv, hashes, key = self._plan(stage)
-            why = self._why(stage, stamp, argv, hashes, key)
+            params, argv, hashes, key = self._plan(stage)
+            why = self._why(stage, stamp, params, hashes, key)
             if i < self.first:
                 if why != "up to date":
                     raise InputError(
@@ -184,9 +216,8 @@ class Runner:
             if dry_run:
                 results.append(StageResult(stage.id, "would run", why))
                 continue
-            resuming = (
-                stamp is not None and stamp.get("status") != "done" and stamp.get("key") == key
-            )
+            same_inputs = stamp is not None and stamp.get("inputs") == hashes
+            resuming = same_inputs and self._keeps_folder(stage, stamp, params, key)
             if sdir.exists() and not resuming:
                 shutil.rmtree(sdir)
             sdir.mkdir(parents=True, exist_ok=True)
@@ -194,6 +225,7 @@ class Runner:
                 "key": key,
                 "status": "running",
                 "command": stage.command,
+                "params": params,
                 "argv": argv,
                 "inputs": hashes,
             }

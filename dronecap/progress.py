@@ -54,7 +54,7 @@ class LogProgress:
         self.printed = False
 
     def __iter__(self) -> Iterator:
-        for item in self.iterable or ():
+        for item in () if self.iterable is None else self.iterable:
             yield item
             self.update(1)
         self.close()

@@ -19,6 +19,12 @@ TRAIN_RUN = "runs/train"  # train -> render, eval, cost
 FEDERATE_RUN = "runs/federate"
 
 
+# In a pipeline every stage has a folder of its own (runs/<pipeline>/<stage>/); the stages whose
+# outputs are folders write straight into it (runs/demo/train/, not runs/demo/train/runs/train/).
+# command -> the option that names its output folder.
+STAGE_FOLDER_OPTION = {"sfm": "sfm_dir", "train": "out", "federate": "out"}
+
+
 def resolve(workdir: str | Path | None, explicit: str | Path | None, default: str) -> Path:
     """Path of an input/output: ``explicit`` if given, else ``workdir / default``."""
     if explicit is not None:

@@ -125,3 +125,35 @@ def test_interrupted_stage_resumes_in_its_folder(workspace: Path) -> None:
 def test_from_requires_earlier_stages_cached(workspace: Path, capsys) -> None:
     assert cli.main(["run", "t", "--from", "shard", "--workdir", str(workspace)]) == 1
     assert "comes before --from" in capsys.readouterr().err
+
+
+TRAIN_SPEC = """\
+t:
+  vars: {{scene: {scene}}}
+  stages:
+    import:
+      command: import-blender
+      params: {{scene_dir: "${{scene}}", resolution: 24}}
+    train:
+      params: {{dataset: "${{import}}/dataset.h5", preset: test, steps: 8, threads: 1}}
+"""
+
+
+def test_threads_are_not_in_the_key_and_more_steps_resume(tmp_path: Path, lego_dir: Path) -> None:
+    (tmp_path / "pipelines.yaml").write_text(TRAIN_SPEC.format(scene=lego_dir))
+    ws = ["--workdir", str(tmp_path)]
+    assert cli.main(["run", "t", *ws]) == 0
+    train = tmp_path / "runs/t/train"
+    assert (train / "checkpoint.pt").exists()  # flat: not runs/t/train/runs/train/
+    first = (train / STAMP).stat().st_mtime_ns
+    # Another thread count computes the same thing: a cache hit.
+    assert cli.main(["run", "t", "train.threads=2", *ws]) == 0
+    assert (train / STAMP).stat().st_mtime_ns == first
+    # More steps keep the folder (the trainer resumes from its checkpoint, step 8 -> 12).
+    (train / "marker").write_text("kept")
+    assert cli.main(["run", "t", "train.steps=12", *ws]) == 0
+    assert (train / "marker").exists()
+    assert json.loads((train / "metrics.json").read_text())["steps"] == 12
+    # Any other change starts over in a cleared folder.
+    assert cli.main(["run", "t", "train.steps=12", "train.seed=1", *ws]) == 0
+    assert not (train / "marker").exists()
