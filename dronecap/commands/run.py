@@ -33,8 +33,10 @@ def _pipelines_file(args: argparse.Namespace) -> Path:
     here = Path(args.workdir) / "pipelines.yaml"
     if here.exists():
         return here
-    # The file shipped with dronecap (repo root, beside the package folders).
-    return Path(__file__).resolve().parents[2] / "pipelines.yaml"
+    # The file shipped with dronecap (package data; in the repo a link to the root's file).
+    from importlib.resources import files
+
+    return Path(str(files("dronecap") / "pipelines.yaml"))
 
 
 def run(args: argparse.Namespace) -> int:
