@@ -6,7 +6,7 @@ used for object captures does not apply. Instead:
 1. **Up**: the mean of the cameras' up vectors (the -y column of each c2w, OpenCV axes) becomes
    +z of the scene frame (the NeRF Synthetic convention); the horizontal direction in which the
    sparse points spread most becomes +x, so the AABB is tight around a corridor-like flight.
-2. **Centre and scale**: from the sparse points after statistical outlier removal (open3d) and
+2. **Centre and scale**: from the sparse points after statistical outlier removal (k-d tree) and
    per-axis percentiles, joined with the camera centres (rays start there); the box's centre
    moves to the origin and its longest half side to 1, so the scene fits [-1, 1]^3.
 3. **Bounds**: the AABB (the robust box, padded) and per-view near/far from the depths of the
@@ -28,7 +28,7 @@ from dronecap.datasets.bounds import near_far_from_aabb
 class NormalizeSettings:
     """Robust-statistics knobs of the normalisation (defaults suit a few hundred to 10^5 points)."""
 
-    nb_neighbors: int = 16  # open3d statistical outlier removal: neighbours considered
+    nb_neighbors: int = 16  # statistical outlier removal: neighbours considered
     std_ratio: float = 2.0  # ... and the distance threshold in standard deviations
     percentile: float = 1.0  # per-axis percentile (and 100 - it) that bounds the points
     margin: float = 0.05  # AABB padding, fraction of its longest side
@@ -89,16 +89,20 @@ def yaw_to_main_axis(points: np.ndarray) -> np.ndarray:
 
 
 def statistical_inliers(points: np.ndarray, nb_neighbors: int, std_ratio: float) -> np.ndarray:
-    """Boolean [P] mask of open3d's statistical outlier removal (all True when too few points)."""
+    """Boolean [P] mask of the statistical outlier rule (all True when too few points).
+
+    A point is an outlier when its mean distance to its ``nb_neighbors`` nearest neighbours
+    exceeds the mean of that quantity over all points by more than ``std_ratio`` standard
+    deviations (the rule of PCL's and open3d's statistical outlier removal; scipy's k-d tree
+    does the search, so SfM needs no 3D-library install).
+    """
     if len(points) <= nb_neighbors:
         return np.ones(len(points), bool)
-    import open3d as o3d
+    from scipy.spatial import cKDTree
 
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    _, keep = cloud.remove_statistical_outlier(nb_neighbors=nb_neighbors, std_ratio=std_ratio)
-    mask = np.zeros(len(points), bool)
-    mask[np.asarray(keep, dtype=np.int64)] = True
-    return mask
+    dist, _ = cKDTree(points).query(points, k=nb_neighbors + 1)  # column 0: the point itself
+    mean_d = dist[:, 1:].mean(1)
+    return mean_d <= mean_d.mean() + std_ratio * mean_d.std(ddof=1)
 
 
 def robust_box(points: np.ndarray, percentile: float) -> np.ndarray:

@@ -98,3 +98,18 @@ def test_near_far_tightens_to_observed_depths_within_the_box():
     # too few observed points: the box's depth range
     nf = near_far(c2w, aabb, [seen[:3]], NormalizeSettings(min_view_points=8))
     assert nf[0] == pytest.approx([1.0, 9.0])
+
+
+def test_statistical_inliers_drop_far_points_like_open3d():
+    from dronecap.sfm.normalize import statistical_inliers
+
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([rng.normal(0, 1, (400, 3)), [[30.0, 0, 0], [0, -25.0, 5]]])
+    mask = statistical_inliers(pts, 16, 2.0)
+    assert not mask[-2:].any() and mask[:400].mean() > 0.9
+    o3d = pytest.importorskip("open3d", reason="open3d (the [sim] extra) gives the reference")
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    _, keep = cloud.remove_statistical_outlier(nb_neighbors=16, std_ratio=2.0)
+    ref = np.zeros(len(pts), bool)
+    ref[np.asarray(keep)] = True
+    assert (mask != ref).sum() <= 4  # same rule; open3d counts the point among its neighbours
