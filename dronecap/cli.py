@@ -46,6 +46,9 @@ class _HelpWithDefaults(argparse.HelpFormatter):
         return text
 
 
+# Optional dependencies (pyproject extras): top-level module -> the extra that installs it.
+OPTIONAL_MODULES = {"open3d": "sim", "flwr": "federated", "ray": "federated"}
+
 # Global flags, given before the command: `dronecap -q train ...`.
 VERBOSITY = {"-q": "off", "--quiet": "off", "-v": "log", "--verbose": "log"}
 
@@ -98,6 +101,16 @@ def main(argv: list[str] | None = None) -> int:
         return int(module.run(args) or 0)
     except InputError as err:
         print(f"dronecap {argv[0]}: error: {err}", file=sys.stderr)
+        return 1
+    except ModuleNotFoundError as err:
+        extra = OPTIONAL_MODULES.get((err.name or "").split(".")[0])
+        if extra is None:
+            raise
+        print(
+            f"dronecap {argv[0]}: error: needs {err.name}, an optional part of dronecap: "
+            f"pip install 'dronecap[{extra}]'",
+            file=sys.stderr,
+        )
         return 1
     except KeyboardInterrupt:
         print(
