@@ -258,19 +258,34 @@ def summary_table(results: list[StageResult]) -> str:
 
 
 def write_report(runner: Runner, results: list[StageResult]) -> Path:
-    """``runs/<pipeline>/report.md``: the summary table and every plot the stages made."""
-    out = runner.dir / "report.md"
+    """``runs/<pipeline>/report.md`` and the self-contained ``report.html``: the summary table and
+    every stage's pictures (made under ``runs/<pipeline>/pictures/``); returns the HTML path."""
+    from dronecap.report_html import PICTURES, stage_pictures, write_html
+
+    pictures: dict[str, list[Path]] = {}
+    for r in results:
+        stage, sdir = runner.pipeline.stage(r.id), runner.stage_dirs[r.id]
+        stamp = read_stamp(sdir) or {}
+        if stamp.get("status") == "done":
+            pics = stage_pictures(
+                stage.command, sdir, stamp.get("params", {}), runner.dir / PICTURES
+            )
+            pictures[r.id] = pics
     lines = [f"# Pipeline `{runner.pipeline.name}`", ""]
     if runner.pipeline.description:
         lines += [runner.pipeline.description, ""]
     lines += ["| stage | status | time | key figure |", "|---|---|---|---|"]
     lines += [f"| {r.id} | {r.status} | {r.seconds:.1f} s | {r.figure} |" for r in results]
-    for r in results:
-        pngs = sorted(runner.stage_dirs[r.id].rglob("*.png"))[:6]
-        if pngs:
-            lines += ["", f"## {r.id}", ""]
-            lines += [f"![{p.name}]({p.relative_to(runner.dir)})" for p in pngs]
+    for sid, pics in pictures.items():
+        if pics:
+            lines += ["", f"## {sid}", ""]
+            lines += [f"![{p.name}]({p.relative_to(runner.dir)})" for p in pics]
     runner.dir.mkdir(parents=True, exist_ok=True)
-    with atomic_output(out) as tmp:
+    with atomic_output(runner.dir / "report.md") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
-    return out
+    rows = [("stage", "status", "time", "key figure", "why")]
+    rows += [(r.id, r.status, f"{r.seconds:.1f} s", r.figure, r.why) for r in results]
+    title = f"dronecap pipeline {runner.pipeline.name}"
+    return write_html(
+        runner.dir / "report.html", title, runner.pipeline.description, rows, pictures
+    )

@@ -1,0 +1,121 @@
+"""Pictures people look at, drawn from the files the stages wrote (never from their internals).
+
+- :func:`training_curve`: test-free training signal of a run (``metrics.json`` history): PSNR
+  and loss against the step and against the wall time;
+- :func:`trajectory_plot`: the recovered flight from above and from the side (``posed.h5``),
+  with the ground truth aligned onto it (Umeyama, scale included) when a ground-truth file is
+  given, and the ATE in the title.
+
+matplotlib (Agg backend) is imported inside the functions; each writes a PNG atomically and
+returns its path, or None when the input holds nothing to draw.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dronecap.files import atomic_output
+
+
+def _save(fig: Any, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def training_curve(metrics_path: str | Path, out: str | Path) -> Path | None:
+    """PSNR (estimated from the training loss) and loss vs step and vs seconds -> PNG.
+
+    Reads ``history`` of a run's ``metrics.json``: rows {step, loss, psnr, seconds}; the test
+    PSNR of the finished run is drawn as a horizontal line.
+    """
+    try:
+        m = json.loads(Path(metrics_path).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    rows = [r for r in m.get("history", []) if isinstance(r, dict) and "step" in r]
+    if not rows:
+        return None
+    step = np.array([r["step"] for r in rows], float)
+    sec = np.array([r.get("seconds", np.nan) for r in rows], float)
+    psnr = np.array([r.get("psnr", np.nan) for r in rows], float)
+    loss = np.array([r.get("loss", np.nan) for r in rows], float)
+    test = m.get("test", {}).get("psnr")
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    for ax, x, label in ((axes[0], step, "step"), (axes[1], sec, "training time (s)")):
+        ax.plot(x, psnr, lw=1, label="train (from loss)")
+        if isinstance(test, float) and np.isfinite(test):
+            ax.axhline(test, color="C3", ls="--", lw=1, label=f"test {test:.2f} dB")
+        ax.set_xlabel(label)
+        ax.set_ylabel("PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower right", fontsize=8)
+    axes[2].semilogy(step, loss, lw=1, color="C2")
+    axes[2].set_xlabel("step")
+    axes[2].set_ylabel("Huber loss")
+    axes[2].grid(alpha=0.3)
+    fig.suptitle(f"training curve: {Path(metrics_path).parent.name}")
+    return _save(fig, Path(out))
+
+
+def trajectory_plot(
+    posed_path: str | Path, out: str | Path, gt_path: str | Path | None = None
+) -> Path | None:
+    """Camera centres of ``posed.h5`` from above (x-y) and from the side (x-z) -> PNG.
+
+    With ``gt_path`` (the simulator's flight.json / poses.json), the ground-truth centres of the
+    same source frames are aligned onto the recovered ones by a similarity (Umeyama) and drawn
+    too; the title gives the ATE as a percentage of the flight's extent.
+    """
+    from dronecap.datasets.format import open_dataset
+
+    ds = open_dataset(posed_path)
+    if ds.poses is None or ds.n == 0:
+        return None
+    est = ds.poses[:, :3, 3]
+    title = f"recovered flight: {ds.n} cameras"
+    ref = None
+    if gt_path is not None and ds.source_index is not None:
+        from dronecap.sfm.align import load_ground_truth, umeyama
+
+        gt = load_ground_truth(gt_path)
+        have = [i for i, s in enumerate(ds.source_index) if int(s) in gt]
+        if len(have) >= 3:
+            g = np.stack([gt[int(ds.source_index[i])][:3, 3] for i in have])
+            sim = umeyama(g, est[have])
+            ref = sim.apply_points(g)
+            err = np.linalg.norm(ref - est[have], axis=1)
+            extent = float(np.linalg.norm(est.max(0) - est.min(0))) or 1.0
+            title += f", ATE {100 * np.sqrt(np.mean(err**2)) / extent:.2f} % of the extent"
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    for ax, (a, b), name in zip(axes, ((0, 1), (0, 2)), ("top (x-y)", "side (x-z)"), strict=True):
+        if ref is not None:
+            ax.plot(ref[:, a], ref[:, b], "-", color="0.6", lw=2, label="ground truth (aligned)")
+        ax.plot(est[:, a], est[:, b], ".-", color="C0", ms=3, lw=0.8, label="recovered")
+        ax.plot(est[:1, a], est[:1, b], "o", color="C2", label="start")
+        ax.set_title(name)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+        ax.set_xlabel("x (scene units)")
+        ax.set_ylabel(("y", "z")[b - 1] + " (scene units)")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title)
+    return _save(fig, Path(out))
