@@ -1,0 +1,211 @@
+"""Time to quality: test PSNR against training wall time, over presets and time budgets.
+
+Each `run` trains one configuration on one scene (lego RGB or gray at 160 px, or any dataset
+file) and writes ``benchmarks/results/time_to_quality/NAME.json``: a curve of PSNR on every
+10th test view against training seconds (evaluation time excluded), the final mean PSNR/SSIM
+over ALL test views, ms/step and the render time per view. `report` gathers them into
+``benchmarks/results/time_to_quality.md`` and ``time_to_quality.png`` with the paper's GPU
+point (26.94 dB in 28 s) drawn for reference.
+
+    .venv/bin/python benchmarks/time_to_quality.py run sized --preset scene-sized
+    .venv/bin/python benchmarks/time_to_quality.py run paper --preset tiny-dronerf
+    .venv/bin/python benchmarks/time_to_quality.py run budget60 --time-budget 60
+    .venv/bin/python benchmarks/time_to_quality.py report
+
+Single thread (``--threads 1``) unless told; run under ``nice`` on the shared machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
+RUNS = RESULTS / "time_to_quality"
+LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
+PAPER_GPU = (28.0, 26.94)  # the paper's lego result on a GPU: seconds, dB
+
+
+def open_scene(scene: str, cache: Path):
+    """The dataset of ``scene``: "lego", "lego-gray" (imported once into ``cache``) or a path."""
+    from dronecap.datasets.blender import import_blender
+    from dronecap.datasets.format import open_dataset
+
+    if scene in ("lego", "lego-gray"):
+        gray = scene == "lego-gray"
+        path = cache / ("lego_gray.h5" if gray else "lego.h5")
+        if not path.exists():
+            cache.mkdir(parents=True, exist_ok=True)
+            import_blender(LEGO, path, color="gray" if gray else "rgb", progress=False)
+        return open_dataset(path)
+    return open_dataset(Path(scene))
+
+
+def run(args: argparse.Namespace) -> None:
+    """Train one configuration and write its JSON (partial while training)."""
+    import torch
+
+    from dronecap.nerf.config import parse_field, preset
+    from dronecap.nerf.trainer import Trainer
+
+    torch.set_num_threads(args.threads)
+    changes = {}
+    for item in args.set:
+        k, v = item.split("=", 1)
+        changes[k] = parse_field(k, v)
+    cfg = preset(args.preset).replace(seed=args.seed, **changes)
+    if args.steps:
+        cfg = cfg.replace(steps=args.steps)
+    ds = open_scene(args.scene, Path(args.cache))
+    test = np.flatnonzero(ds.split == 2)
+    curve_views = test[:: args.curve_every_view]
+    tr = Trainer(cfg, ds)
+    curve, ms = [], []
+    next_eval = args.eval_every
+    t_start = time.time()
+    tr.field.train()
+    while tr.step < cfg.steps:
+        ms.append(tr.train_step()["ms"])
+        if tr.train_seconds >= next_eval and tr.step < cfg.steps:
+            next_eval += args.eval_every
+            ev = tr.evaluate(ds, curve_views)
+            tr.field.train()
+            curve.append({"step": tr.step, "seconds": tr.train_seconds, "psnr": ev["psnr"]})
+            _write(args.name, {"name": args.name, "finished": False, "curve": curve})
+            print(f"{args.name}: step {tr.step} {tr.train_seconds:.0f}s psnr {ev['psnr']:.2f}")
+    full = tr.evaluate(ds)
+    sub = set(int(i) for i in curve_views)
+    curve_psnr = float(np.mean([v["psnr"] for v in full["per_view"] if v["index"] in sub]))
+    curve.append({"step": tr.step, "seconds": tr.train_seconds, "psnr": curve_psnr})
+    t0 = time.perf_counter()
+    for i in test[:5]:
+        tr.render(ds.poses[i], ds.intrinsics)
+    render_s = (time.perf_counter() - t0) / 5
+    out = {
+        "name": args.name,
+        "scene": args.scene,
+        "preset": args.preset,
+        "overrides": args.set,
+        "seed": args.seed,
+        "steps": tr.step,
+        "psnr": full["psnr"],
+        "ssim": full["ssim"],
+        "views": full["views"],
+        "curve": curve,
+        "train_seconds": tr.train_seconds,
+        "wall_seconds": time.time() - t_start,
+        "ms_per_step_median": float(np.median(ms)),
+        "render_seconds": render_s,
+        "parameters": tr.parameter_count(),
+        "n_max": tr.n_max,
+        "threads": args.threads,
+        "load_average": os.getloadavg()[0],
+        "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
+    }
+    _write(args.name, out | {"finished": True})
+    print(
+        f"{args.name}: PSNR {full['psnr']:.2f} SSIM {full['ssim']:.3f} over {full['views']} "
+        f"views, {tr.train_seconds:.0f} s, {np.median(ms):.1f} ms/step, "
+        f"render {render_s:.3f} s/view"
+    )
+
+
+def _write(name: str, obj: dict) -> None:
+    RUNS.mkdir(parents=True, exist_ok=True)
+    tmp = RUNS / f".{name}.json.tmp"
+    tmp.write_text(json.dumps(obj, indent=1, default=list) + "\n")
+    tmp.replace(RUNS / f"{name}.json")
+
+
+def memory_mb(cfg_dict: dict) -> float:
+    """Modelled GAP9 memory (MB, Table II accounting) of a run's configuration."""
+    from dronecap.gap9.model import cost_report
+    from dronecap.nerf.config import TrainConfig
+
+    d = {k: v for k, v in cfg_dict.items() if k in TrainConfig.__dataclass_fields__}
+    d["betas"] = tuple(d["betas"])
+    return cost_report(TrainConfig(**d))["memory"]["untiled"]["total"] / 1e6
+
+
+def report(args: argparse.Namespace) -> None:
+    """Table and plot of every finished run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [json.loads(p.read_text()) for p in sorted(RUNS.glob("*.json"))]
+    runs = [r for r in runs if r.get("finished")]
+    load = os.getloadavg()
+    lines = [
+        "# Time to quality (PSNR against training wall time)",
+        "",
+        "Final PSNR/SSIM: scikit-image over ALL test views at the stored resolution; the curve "
+        "(plot) uses every 10th test view, evaluation time excluded. 1 torch thread unless the "
+        "`thr` column says otherwise, under `nice` on the shared 2-core machine: the `load` "
+        "column is the 1-minute load average at the end of each run. The paper's GPU point: "
+        f"{PAPER_GPU[1]} dB in {PAPER_GPU[0]:.0f} s.",
+        "",
+        "Command: the `run` lines in docs/training.md; this table: "
+        f"`.venv/bin/python benchmarks/time_to_quality.py report` (load {load[0]:.1f}).",
+        "",
+        "| run | scene | preset + overrides | steps | PSNR dB | SSIM | train s | ms/step | "
+        "render s/view | GAP9 MB | n_max | thr | load |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in runs:
+        lines.append(
+            f"| {r['name']} | {r['scene']} | {r['preset']} {' '.join(r['overrides'])} | "
+            f"{r['steps']} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['train_seconds']:.0f} | "
+            f"{r['ms_per_step_median']:.1f} | {r['render_seconds']:.2f} | "
+            f"{memory_mb(r['config']):.1f} | {r['n_max']} | {r['threads']} | "
+            f"{r['load_average']:.1f} |"
+        )
+    text = "\n".join(lines) + "\n"
+    print(text)
+    (RESULTS / "time_to_quality.md").write_text(text)
+    scenes = sorted({r["scene"] for r in runs})
+    fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.2), squeeze=False)
+    for ax, scene in zip(axes[0], scenes, strict=True):
+        for r in (r for r in runs if r["scene"] == scene):
+            c = r["curve"]
+            ax.plot([p["seconds"] for p in c], [p["psnr"] for p in c], "o-", ms=3, label=r["name"])
+        if scene == "lego":
+            ax.plot(*PAPER_GPU, "k*", ms=12, label="paper, GPU")
+        ax.set_xlabel("training wall time [s] (CPU, see table for threads)")
+        ax.set_ylabel("test PSNR [dB] (every 10th test view)")
+        ax.set_title(Path(scene).stem)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(RESULTS / "time_to_quality.png", dpi=110)
+
+
+def main() -> None:
+    """Command line."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("name")
+    r.add_argument("--scene", default="lego", help="lego, lego-gray or a dataset.h5 path")
+    r.add_argument("--preset", default="tiny-dronerf-sized")
+    r.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
+    r.add_argument("--steps", type=int, default=0, help="override the preset's step count")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--threads", type=int, default=1)
+    r.add_argument("--eval-every", type=float, default=15.0, help="training seconds")
+    r.add_argument("--curve-every-view", type=int, default=10)
+    r.add_argument("--cache", default="/tmp/dronecap_bench")
+    sub.add_parser("report")
+    args = p.parse_args()
+    run(args) if args.cmd == "run" else report(args)
+
+
+if __name__ == "__main__":
+    main()
