@@ -1,63 +1,41 @@
-"""The simulated nano-drone camera: ray casting, diffuse shading, motion blur, exposure, noise.
+"""Ray casting of a scene through the simulated drone's lens: diffuse shading, motion blur.
 
-A frame is the average of K sub-frame renders at poses spread over the exposure time (K grows
-with how far the image moves during the exposure, up to ``MAX_SUBFRAMES``), then multiplied by
-a slowly drifting exposure gain, converted to 8-bit digital numbers (DN), given signal-dependent
-sensor noise (variance ``shot * DN + read^2``) and quantised. Rays go through pixel centres
-(u + 0.5, v + 0.5) of a pinhole camera with OpenCV axes.
+One ray per pixel centre (u + 0.5, v + 0.5), cast through the lens model
+(:meth:`dronecap.camera.Camera.undistort_points`, OpenCV axes), so a distorted or off-centre
+lens is rendered exactly as the camera model projects. A frame is the average of K sub-frame
+renders at poses spread over the exposure time (K grows with how far the image moves during the
+exposure); :mod:`dronecap.simulator.sensor` turns that radiance into an 8-bit frame.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
 import numpy as np
 
+from dronecap.camera import Camera
 from dronecap.simulator.scenes import Scene
 
-MAX_SUBFRAMES = 8
 
-
-@dataclass(frozen=True)
-class SimCamera:
-    """160x160 monochrome pinhole camera of the simulated drone (pixels; seconds)."""
-
-    width: int = 160
-    height: int = 160
-    fx: float = 120.0
-    fy: float = 120.0
-    cx: float = 80.0
-    cy: float = 80.0
-    exposure: float = 1 / 60  # shutter time, seconds
-    read_noise: float = 1.5  # DN
-    shot_noise: float = 0.04  # DN of variance per DN of signal
-
-    def intrinsics(self) -> dict[str, float]:
-        """``{"fx", "fy", "cx", "cy", "width", "height"}`` as stored in flight.json."""
-        d = asdict(self)
-        return {k: d[k] for k in ("fx", "fy", "cx", "cy", "width", "height")}
-
-    def directions(self) -> np.ndarray:
-        """Unit ray directions in camera axes for every pixel, row-major: float32 [H*W, 3]."""
-        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
-        d = np.stack(
-            [(u + 0.5 - self.cx) / self.fx, (v + 0.5 - self.cy) / self.fy, np.ones_like(u)], -1
-        ).reshape(-1, 3)
-        return (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+def ray_directions(lens: Camera) -> np.ndarray:
+    """Unit ray directions in camera axes through every pixel centre, row-major: float32
+    [H*W, 3] (through the lens distortion)."""
+    v, u = np.mgrid[0 : lens.height, 0 : lens.width].astype(np.float64)
+    xy = lens.undistort_points(np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1))
+    d = np.concatenate([xy, np.ones((len(xy), 1))], 1)
+    return (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
 
 class Renderer:
-    """Renders a :class:`Scene` through a :class:`SimCamera`."""
+    """Renders a :class:`Scene` through a lens (:class:`dronecap.camera.Camera`)."""
 
-    def __init__(self, scene: Scene, camera: SimCamera) -> None:
-        self.scene, self.camera = scene, camera
-        self._dirs = camera.directions()
+    def __init__(self, scene: Scene, lens: Camera) -> None:
+        self.scene, self.lens = scene, lens
+        self._dirs = ray_directions(lens)
 
     def radiance(self, c2w: np.ndarray) -> np.ndarray:
         """Noise-free linear images for K poses ``c2w`` [K, 4, 4]: float32 [K, H, W], ~[0, 1]."""
         import open3d as o3d
 
-        cam, scene = self.camera, self.scene
+        cam, scene = self.lens, self.scene
         k, n = len(c2w), len(self._dirs)
         rot = c2w[:, :3, :3].astype(np.float32)
         dirs = np.einsum("kij,nj->kni", rot, self._dirs).reshape(-1, 3)
@@ -100,19 +78,13 @@ class Renderer:
         r = c2w_open[:3, :3].T @ c2w_close[:3, :3]
         angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))
         shift = np.linalg.norm(c2w_close[:3, 3] - c2w_open[:3, 3])
-        return float((angle + shift / 1.0) * self.camera.fx)
+        return float((angle + shift / 1.0) * self.lens.fx)
 
-    def expose(self, image: np.ndarray, gain: float, rng: np.random.Generator) -> np.ndarray:
-        """Linear image [H, W] -> uint8 [H, W]: gain, 8-bit scale, sensor noise, quantisation."""
-        cam = self.camera
-        dn = np.clip(image * gain * 255.0, 0.0, 255.0)
-        sigma = np.sqrt(cam.shot_noise * dn + cam.read_noise**2)
-        noisy = dn + sigma * rng.standard_normal(dn.shape)
-        return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
-
-    def subframes(self, blur_px: float) -> np.ndarray:
-        """Offsets in [-0.5, 0.5] of the exposure at which to render sub-frames: float [K]."""
-        k = int(np.clip(np.ceil(blur_px), 1, MAX_SUBFRAMES))
+    @staticmethod
+    def subframes(blur_px: float, max_subframes: int) -> np.ndarray:
+        """Offsets in [-0.5, 0.5] of the exposure at which to render sub-frames: float [K], K =
+        the blur in pixels clipped to [1, ``max_subframes``]."""
+        k = int(np.clip(np.ceil(blur_px), 1, max_subframes))
         return np.zeros(1) if k == 1 else np.linspace(-0.5, 0.5, k)
 
 

@@ -1,115 +1,261 @@
-"""The simulate stage: render a nano-drone flight to a gray video plus ground truth JSON.
+"""The simulate stage: render a nano-drone flight through a lens, a sensor and a lossy link.
 
-Ground truth (``<video stem>.json`` beside the video)::
+Ground truth (``flight.json``: beside the video, or inside a capture folder)::
 
     {"fps": 30,
-     "intrinsics": {"fx", "fy", "cx", "cy", "width", "height"},   # pixels, centres at +0.5
-     "frames": [{"index": i, "timestamp": t, "c2w": 4x4 nested list}, ...],
-     "scene": {...}}
+     "intrinsics": {"fx", "fy", "cx", "cy", "width", "height"[, "model": "pinhole",
+                    "distortion": [k1, k2, p1, p2, k3]]},   # pixels, centres at +0.5; OpenCV order
+     "frames": [{"index": k, "timestamp": t, "c2w": 4x4, "source_frame": s, "frame_id": s % 256,
+                 "frame_timestamp": us, ["shows": j], ["tear": {"row", "kind", "shift"}],
+                 ["file": name]}, ...],
+     "stream": {"source_frames": N, "delivered": M, "dropped": [...], "duplicated": [...],
+                "torn": [...]},
+     "sensor": {...}, "scene": {...}, "format": "mp4" | "nanocockpit" | "pulp-dronet",
+     ["telemetry": {...}]}
 
-``c2w`` is camera-to-world in OpenCV camera axes (x right, y down, z forward), metres, at the
-middle of frame i's exposure; ``index`` is the video frame number (what ingest stores as
-``source_index``) and ``timestamp = index / fps`` seconds. The same seed gives the same video.
+``frames`` lists the DELIVERED frames in order: ``index`` k is the video frame number or the
+position of the file in the folder's natural order (what ingest stores as ``source_index``);
+``source_frame`` s is the camera's frame number (dropped ones are missing from the list and
+listed under ``stream.dropped``). ``c2w`` is camera-to-world in OpenCV camera axes, metres, at
+the middle of the exposure of the image the frame SHOWS (a duplicate shows an earlier frame
+``shows``; its ``timestamp`` = that image's capture time, seconds from the first frame). A torn
+frame's top rows (above ``tear.row``) are exact. Without defects this is the original simulator's
+output, byte for byte; the same seed gives the same capture.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from dronecap.errors import InputError
-from dronecap.files import atomic_output
+from dronecap.simulator import formats, telemetry
 from dronecap.simulator.flights import Flight
-from dronecap.simulator.render import Renderer, SimCamera
+from dronecap.simulator.render import Renderer
 from dronecap.simulator.scenes import SCENES
-from dronecap.simulator.video import write_gray_video
+from dronecap.simulator.sensor import (
+    DEFECT_DEFAULTS,
+    Sensor,
+    expose,
+    exposure_gain,
+    sensor_preset,
+    vignette,
+)
+from dronecap.simulator.stream import Delivered, LinkDefects, plan_stream, tear
 
 FPS = 30.0
 
 
-def exposure_gain(u: np.ndarray, seed: int) -> np.ndarray:
-    """Slow auto-exposure drift: gain [T] around 0.95, +-10 %, at normalised times ``u`` [T]."""
-    p = np.random.default_rng([seed, 4]).uniform(0, 2 * np.pi, 2)
-    return 0.95 * (
-        1.0 + 0.07 * np.sin(2 * np.pi * 1.3 * u + p[0]) + 0.03 * np.sin(2 * np.pi * 3.1 * u + p[1])
-    )
+@dataclass(frozen=True)
+class Capture:
+    """What to simulate besides the scene: the camera, the link and the onboard telemetry."""
+
+    sensor: Sensor = field(default_factory=Sensor)
+    link: LinkDefects = field(default_factory=LinkDefects)
+    state_noise: telemetry.StateNoise = field(default_factory=telemetry.StateNoise)
+    sensor_name: str = "custom"
+
+    def problems(self) -> list[str]:
+        """Everything out of range (empty when the capture can be simulated)."""
+        return self.sensor.problems() + self.link.problems() + self.state_noise.problems()
+
+
+def capture_preset(name: str) -> Capture:
+    """The capture of a named sensor (:func:`~dronecap.simulator.sensor.sensor_preset`); the
+    AI-deck ones stream over a lossy link (drops, duplicates, tears at their default levels)."""
+    link = LinkDefects()
+    if name.startswith("aideck"):
+        link = LinkDefects(
+            *(float(DEFECT_DEFAULTS[k]) for k in ("drop", "duplicate", "torn"))  # type: ignore[arg-type]
+        )
+    return Capture(sensor_preset(name), link, sensor_name=name)
+
+
+def intrinsics_record(sensor: Sensor) -> dict[str, object]:
+    """flight.json ``intrinsics``: the calibration-JSON keys (OpenCV distortion order)."""
+    lens = sensor.lens
+    out: dict[str, object] = {
+        "fx": lens.fx, "fy": lens.fy, "cx": lens.cx, "cy": lens.cy,
+        "width": lens.width, "height": lens.height,
+    }  # fmt: skip
+    if not lens.is_pinhole:
+        d = [float(x) for x in lens.opencv_coeffs()]
+        out["model"] = "pinhole"
+        out["distortion"] = (d + [0.0] * 5)[:5]
+    return out
+
+
+class SimulatedFlight:
+    """A flight of ``frames`` source frames at 30 Hz through ``capture``; renders lazily."""
+
+    def __init__(self, scene_name: str, frames: int, seed: int, capture: Capture) -> None:
+        if scene_name not in SCENES:
+            raise InputError(f"unknown scene {scene_name!r}, expected one of {sorted(SCENES)}")
+        if frames < 2:
+            raise InputError(f"--frames must be at least 2, got {frames}")
+        if seed < 0:
+            raise InputError(f"--seed must be >= 0, got {seed}")
+        if problems := capture.problems():
+            raise InputError("; ".join(problems))
+        self.scene_name, self.frames, self.seed, self.capture = scene_name, frames, seed, capture
+        self.scene = SCENES[scene_name](seed)
+        self.flight = Flight(scene_name, seed)
+        sensor = capture.sensor
+        self.renderer = Renderer(self.scene, sensor.lens)
+        self.duration = frames / FPS
+        u = np.arange(frames) / frames
+        self.poses = self.flight.pose(u, frames)  # [N, 4, 4] every source frame
+        self.gain = exposure_gain(u, seed, sensor.exposure_drift)
+        self.delivered = plan_stream(frames, capture.link, sensor.lens.height, seed)
+        self._vignette = vignette(sensor.lens, sensor.vignetting) if sensor.vignetting else None
+
+    def pose_at(self, seconds: np.ndarray) -> np.ndarray:
+        """Camera-to-world [T, 4, 4] at flight times ``seconds`` [T] (0 = first frame)."""
+        return self.flight.pose(np.asarray(seconds) / self.duration, self.frames)
+
+    def render_source(self, s: int) -> np.ndarray:
+        """The camera's uint8 [H, W] frame ``s`` (motion blur, vignetting, exposure, noise,
+        JPEG), before the link."""
+        sensor, u = self.capture.sensor, s / self.frames
+        half = 0.5 * sensor.exposure_s / self.duration  # half the exposure, normalised time
+        ends = self.flight.pose(np.array([u - half, u + half]), self.frames)
+        blur = self.renderer.blur_pixels(ends[0], ends[1])
+        offsets = self.renderer.subframes(blur, sensor.max_subframes)
+        sub = self.flight.pose(u + offsets * 2 * half, self.frames)
+        image = self.renderer.radiance(sub).mean(axis=0)
+        if self._vignette is not None:
+            image = image * self._vignette
+        return expose(image, float(self.gain[s]), sensor, np.random.default_rng([self.seed, 5, s]))
+
+    def images(self) -> Iterator[np.ndarray]:
+        """The delivered uint8 [H, W] frames in order (a duplicate is the previous buffer)."""
+        last: np.ndarray | None = None
+        for d in self.delivered:
+            if d.shows != d.source and last is not None:
+                yield last
+                continue
+            frame = self.render_source(d.source)
+            if d.tear_row is not None:
+                frame = tear(frame, d.tear_row, str(d.tear_kind), d.tear_shift)
+            last = frame
+            yield frame
+
+    def document(self, fmt: str = "mp4") -> dict[str, object]:
+        """The ground-truth document (module docstring) for output format ``fmt``."""
+        sensor, d = self.capture.sensor, self.delivered
+        files = formats.frame_files(fmt, [x.source for x in d], FPS) if fmt != "mp4" else None
+        frames = []
+        for k, x in enumerate(d):
+            rec: dict[str, object] = {
+                "index": k,
+                "timestamp": x.shows / FPS,
+                "c2w": self.poses[x.shows].tolist(),
+                "source_frame": x.source,
+                "frame_id": x.source % 256,
+                "frame_timestamp": int(formats.ticks(x.source / FPS)),
+            }
+            if x.shows != x.source:
+                rec["shows"] = x.shows
+            if x.tear_row is not None:
+                rec["tear"] = {"row": x.tear_row, "kind": x.tear_kind, "shift": x.tear_shift}
+            if files:
+                rec["file"] = files[k]
+            frames.append(rec)
+        got = {x.source for x in d}
+        return {
+            "fps": FPS,
+            "intrinsics": intrinsics_record(sensor),
+            "frames": frames,
+            "stream": {
+                "source_frames": self.frames,
+                "delivered": len(d),
+                "dropped": [s for s in range(self.frames) if s not in got],
+                "duplicated": [x.source for x in d if x.shows != x.source],
+                "torn": [x.source for x in d if x.tear_row is not None and x.shows == x.source],
+                "link": self.capture.link.__dict__,
+            },
+            "sensor": {"name": self.capture.sensor_name, **sensor.describe()},
+            "format": fmt,
+            "scene": {
+                **self.scene.description,
+                "frames": self.frames,
+                "exposure_s": sensor.exposure_s,
+                "noise": {"read_dn": sensor.read_noise, "shot_dn_per_dn": sensor.shot_noise},
+                "exposure_gain_range": [float(self.gain.min()), float(self.gain.max())],
+            },
+        }
+
+    def onboard_states(self) -> dict[str, np.ndarray]:
+        """The onboard estimate (``times`` s, ``position`` m, ``velocity`` m/s, ``quaternion``
+        xyzw, ``yaw_error`` rad) from just before the first frame to the last."""
+        noise = self.capture.state_noise
+        times = telemetry.state_times(-0.05, (self.frames - 1) / FPS, noise, self.seed)
+        body = telemetry.body_poses(self.pose_at(times))
+        dt = 1e-3
+        velocity = (self.pose_at(times + dt)[:, :3, 3] - self.pose_at(times - dt)[:, :3, 3]) / (
+            2 * dt
+        )
+        return {"times": times, **telemetry.estimate(times, body, velocity, noise, self.seed)}
 
 
 def render_flight(
-    scene_name: str, frames: int, seed: int, camera: SimCamera | None = None
+    scene_name: str, frames: int, seed: int, capture: Capture | None = None
 ) -> tuple[Iterator[np.ndarray], dict[str, object]]:
-    """Frames (uint8 [H, W], rendered lazily in order) and the ground-truth document."""
-    if scene_name not in SCENES:
-        raise InputError(f"unknown scene {scene_name!r}, expected one of {sorted(SCENES)}")
-    if frames < 2:
-        raise InputError(f"--frames must be at least 2, got {frames}")
-    camera = camera or SimCamera()
-    scene = SCENES[scene_name](seed)
-    flight = Flight(scene_name, seed)
-    renderer = Renderer(scene, camera)
-    duration = frames / FPS
-    u = np.arange(frames) / frames
-    poses = flight.pose(u, frames)
-    gain = exposure_gain(u, seed)
-    half = 0.5 * camera.exposure / duration  # half the exposure in normalised time
-
-    def generate() -> Iterator[np.ndarray]:
-        for i in range(frames):
-            ends = flight.pose(np.array([u[i] - half, u[i] + half]), frames)
-            offsets = renderer.subframes(renderer.blur_pixels(ends[0], ends[1]))
-            sub = flight.pose(u[i] + offsets * 2 * half, frames)
-            image = renderer.radiance(sub).mean(axis=0)
-            yield renderer.expose(image, float(gain[i]), np.random.default_rng([seed, 5, i]))
-
-    doc = {
-        "fps": FPS,
-        "intrinsics": camera.intrinsics(),
-        "frames": [
-            {"index": i, "timestamp": i / FPS, "c2w": poses[i].tolist()} for i in range(frames)
-        ],
-        "scene": {
-            **scene.description,
-            "frames": frames,
-            "exposure_s": camera.exposure,
-            "noise": {"read_dn": camera.read_noise, "shot_dn_per_dn": camera.shot_noise},
-            "exposure_gain_range": [float(gain.min()), float(gain.max())],
-        },
-    }
-    return generate(), doc
+    """Delivered frames (uint8 [H, W], rendered lazily in order) and the ground-truth document
+    of an mp4 capture."""
+    sim = SimulatedFlight(scene_name, frames, seed, capture or Capture(sensor_name="clean"))
+    return sim.images(), sim.document()
 
 
 def simulate(
     scene_name: str,
-    video: str | Path,
+    output: str | Path,
     frames: int = 600,
     seed: int = 0,
     codec: str = "ffv1",
     progress: bool = True,
+    capture: Capture | None = None,
+    fmt: str = "mp4",
 ) -> tuple[Path, Path]:
-    """Render a flight to ``video`` and its ground truth to ``video`` with suffix ``.json``.
+    """Render a flight to ``output``: a video (``fmt`` mp4; ground truth beside it with suffix
+    ``.json``) or a capture folder (nanocockpit, pulp-dronet; ``flight.json`` inside).
 
     Returns:
-        (video path, ground-truth JSON path); both are written atomically.
+        (video or folder, ground-truth JSON path); both appear only when complete.
     """
     from dronecap.progress import progress_bar
 
-    video = Path(video)
-    gt_path = video.with_suffix(".json")
-    images, doc = render_flight(scene_name, frames, seed)
+    if fmt not in formats.FORMATS:
+        raise InputError(f"unknown format {fmt!r}, expected one of {', '.join(formats.FORMATS)}")
+    sim = SimulatedFlight(scene_name, frames, seed, capture or Capture(sensor_name="clean"))
+    output = Path(output)
+    doc = sim.document(fmt)
     bar = progress_bar(
-        images,
-        total=frames,
+        sim.images(),
+        total=len(sim.delivered),
         unit="frame",
         desc="render",
         disable=None if progress else True,
         leave=False,
     )
-    write_gray_video(video, bar, FPS, codec)
-    doc["scene"]["video"] = video.name  # type: ignore[index]
-    doc["scene"]["codec"] = codec  # type: ignore[index]
-    with atomic_output(gt_path) as tmp:
-        tmp.write_text(json.dumps(doc))
-    return video, gt_path
+    if fmt == "mp4":
+        doc["scene"]["video"] = output.name  # type: ignore[index]
+        doc["scene"]["codec"] = codec  # type: ignore[index]
+        return formats.write_video(output, bar, FPS, codec, doc)
+    states = sim.onboard_states()
+    noise = sim.capture.state_noise
+    doc["body_from_camera"] = telemetry.BODY_FROM_CAMERA.tolist()
+    doc["telemetry"] = {
+        "file": "metadata.csv" if fmt == "nanocockpit" else "state.csv",
+        "rows": len(states["times"]) if fmt == "pulp-dronet" else len(sim.delivered),
+        "noise": noise.__dict__,
+        "final_yaw_error_deg": float(np.degrees(states["yaw_error"][-1])),
+    }
+    quality = sim.capture.sensor.jpeg_quality or formats.PULP_JPEG_QUALITY
+    return formats.write_folder(output, fmt, bar, doc, states, quality)
+
+
+__all__ = ["Capture", "Delivered", "capture_preset", "SimulatedFlight", "render_flight", "simulate"]

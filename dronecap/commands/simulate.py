@@ -1,44 +1,208 @@
-"""``dronecap simulate``: render a synthetic nano-drone flight (video + ground-truth JSON)."""
+"""``dronecap simulate``: render a synthetic nano-drone flight (video or drone capture folder plus
+ground truth), optionally through a realistic lens, sensor and Wi-Fi link.
+
+Each defect flag given without a value takes its realistic default level
+(``dronecap.simulator.sensor.DEFECT_DEFAULTS``); ``--sensor aideck`` turns them all on at
+324x244. With no flag the output is the original clean simulator's.
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 HELP = "render a synthetic nano-drone flight video with ground truth"
 SCENES = ("corridor", "orbit")
 CODECS = ("ffv1", "mjpg", "mp4v")
+FORMATS = ("mp4", "nanocockpit", "pulp-dronet")
+SENSORS = ("clean", "aideck", "aideck-162")
+
+# flag -> (metavar, number of values, help); their default levels live in DEFECT_DEFAULTS
+DEFECT_FLAGS = {
+    "distortion": ("K1,K2", 2, "OpenCV radial lens distortion (also K1,K2,K3)"),
+    "principal_offset": ("DX,DY", 2, "principal point off centre by DX*width, DY*height"),
+    "vignetting": ("V", 1, "light lost at the farthest corner (0-1)"),
+    "noise": ("READ,SHOT", 2, "read noise DN and shot noise DN^2 per DN"),
+    "blur": ("MS", 1, "exposure time in ms (motion blur from the flight's own motion)"),
+    "exposure_drift": ("A", 1, "relative amplitude of the auto-exposure gain drift (0-1)"),
+    "jpeg": ("Q", 1, "JPEG quality of the streamed frames (1-100)"),
+    "drop": ("RATE", 1, "fraction of frames lost by the link, in bursts (0-0.5)"),
+    "duplicate": ("RATE", 1, "fraction of frames delivered as the previous buffer (0-0.5)"),
+    "torn": ("RATE", 1, "fraction of frames whose bottom part is black/gray/shifted (0-0.5)"),
+}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of the command."""
-    p.add_argument("--scene", default="corridor", choices=SCENES, help="scene (default: corridor)")
+    from dronecap.simulator.sensor import DEFECT_DEFAULTS
+
+    p.add_argument("--scene", default="corridor", choices=SCENES, help="scene")
     p.add_argument(
         "-o",
         "--output",
-        help="video file (default: WORKDIR/flight.mp4); ground truth goes beside it as .json",
+        help="video file (default: WORKDIR/flight.mp4; ground truth beside it as .json) or, "
+        "for a folder format, the capture folder (default: WORKDIR/capture; flight.json inside)",
     )
-    p.add_argument("--frames", type=int, default=600, help="frames at 30 Hz (default: 600)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--frames", type=int, default=600, help="source frames at 30 Hz")
+    p.add_argument("--seed", type=int, default=0, help="random seed (>= 0)")
     p.add_argument(
         "--codec",
         default="ffv1",
         choices=CODECS,
-        help="ffv1 = lossless (default, best for SIFT); mjpg / mp4v = smaller, lossy",
+        help="mp4 format: ffv1 = lossless (best for SIFT); mjpg / mp4v = smaller, lossy",
     )
+    p.add_argument(
+        "--format",
+        default="mp4",
+        choices=FORMATS,
+        help="mp4: a video; nanocockpit: camera_raw/*.png + metadata.csv; pulp-dronet: "
+        "images/<ticks>.jpeg + state.csv (both with noisy, drifting onboard state)",
+    )
+    p.add_argument(
+        "--sensor",
+        default="clean",
+        choices=SENSORS,
+        help="clean: 160x160 pinhole, mild noise; aideck: HM01B0 at 324x244 (f 184 px) with "
+        "every defect at its default level; aideck-162: the same binned to 162x162",
+    )
+    p.add_argument("--size", metavar="WxH", help="image size (default: the sensor's)")
+    p.add_argument("--focal", type=float, help="focal length in pixels (default: the sensor's)")
+    for name, (metavar, _, text) in DEFECT_FLAGS.items():
+        level = DEFECT_DEFAULTS[name]
+        shown = ",".join(str(x) for x in level) if isinstance(level, tuple) else str(level)
+        p.add_argument(
+            "--" + name.replace("_", "-"),
+            nargs="?",
+            const=shown,
+            metavar=metavar,
+            help=f"{text}; given alone: {shown}",
+        )
+    p.add_argument(
+        "--state-noise",
+        metavar="POS_MM,ANGLE_DEG,SCALE,YAW_DRIFT",
+        help="folder formats: onboard estimate errors: white position noise (mm), attitude "
+        "noise (deg), odometry scale error (fraction), heading drift (deg/min) "
+        "(default: 5,0.5,0.01,2)",
+    )
+
+
+def _numbers(flag: str, text: str, count: tuple[int, ...]) -> tuple[float, ...]:
+    """Comma-separated finite numbers, ``count`` of them, or one InputError line."""
+    from dronecap.errors import InputError
+
+    try:
+        vals = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) not in count or not all(math.isfinite(v) for v in vals):
+        want = " or ".join(str(c) for c in count)
+        raise InputError(f"--{flag} takes {want} comma-separated numbers, got {text!r}")
+    return vals
+
+
+def capture_from_args(args: argparse.Namespace):  # noqa: ANN201 - a simulate.Capture
+    """The :class:`~dronecap.simulator.simulate.Capture` the options describe (range-checked)."""
+    import dataclasses
+
+    from dronecap.errors import InputError
+    from dronecap.simulator.sensor import default_lens, with_lens_defects
+    from dronecap.simulator.simulate import Capture, capture_preset
+
+    preset = capture_preset(args.sensor)
+    sensor, link, state = preset.sensor, preset.link, preset.state_noise
+    lens = sensor.lens
+    if args.size is not None or args.focal is not None:
+        w, h = lens.width, lens.height
+        if args.size is not None:
+            try:
+                w, h = (int(x) for x in args.size.lower().split("x"))
+            except ValueError:
+                raise InputError(f"--size must be WxH, got {args.size!r}") from None
+            if not (16 <= w <= 2048 and 16 <= h <= 2048):
+                raise InputError(f"--size must be 16-2048 pixels a side, got {args.size}")
+        if args.focal is not None and not (math.isfinite(args.focal) and args.focal > 0):
+            raise InputError(f"--focal must be a positive number of pixels, got {args.focal}")
+        focal = args.focal if args.focal is not None else lens.fx * w / lens.width
+        new = default_lens(w, h, focal)
+        offset = (
+            (lens.cx - lens.width / 2) / lens.width,
+            (lens.cy - lens.height / 2) / lens.height,
+        )
+        lens = with_lens_defects(new, None, offset)
+        lens = dataclasses.replace(lens, model=sensor.lens.model, distortion=sensor.lens.distortion)
+    v = {k: getattr(args, k) for k in DEFECT_FLAGS}
+    if v["principal_offset"] is not None:
+        dx, dy = _numbers("principal-offset", v["principal_offset"], (2,))
+        if not (abs(dx) < 0.4 and abs(dy) < 0.4):
+            raise InputError("--principal-offset must be within +-0.4 of the size")
+        lens = dataclasses.replace(lens, cx=lens.width * (0.5 + dx), cy=lens.height * (0.5 + dy))
+    if v["distortion"] is not None:
+        k = _numbers("distortion", v["distortion"], (2, 3))
+        if not all(abs(x) <= 1.0 for x in k):
+            raise InputError("--distortion coefficients must be within +-1")
+        lens = with_lens_defects(lens.pinhole(), k)
+    changes: dict[str, object] = {"lens": lens}
+    if v["vignetting"] is not None:
+        changes["vignetting"] = _numbers("vignetting", v["vignetting"], (1,))[0]
+    if v["noise"] is not None:
+        changes["read_noise"], changes["shot_noise"] = _numbers("noise", v["noise"], (2,))
+    if v["blur"] is not None:
+        ms = _numbers("blur", v["blur"], (1,))[0]
+        if not 0 < ms <= 1000 / 30:
+            raise InputError(f"--blur is an exposure time in ms within (0, 33.3], got {ms}")
+        changes["exposure_s"] = ms / 1000
+        changes["max_subframes"] = max(sensor.max_subframes, 16)
+    if v["exposure_drift"] is not None:
+        changes["exposure_drift"] = _numbers("exposure-drift", v["exposure_drift"], (1,))[0]
+    if v["jpeg"] is not None:
+        q = _numbers("jpeg", v["jpeg"], (1,))[0]
+        if q != int(q) or not 1 <= q <= 100:
+            raise InputError(f"--jpeg quality must be an integer 1-100, got {v['jpeg']}")
+        changes["jpeg_quality"] = int(q)
+    sensor = dataclasses.replace(sensor, **changes)  # type: ignore[arg-type]
+    for name in ("drop", "duplicate", "torn"):
+        if v[name] is not None:
+            link = dataclasses.replace(link, **{name: _numbers(name, v[name], (1,))[0]})
+    if args.state_noise is not None:
+        pos, ang, scale, yaw = _numbers("state-noise", args.state_noise, (4,))
+        state = dataclasses.replace(
+            state, position_mm=pos, angle_deg=ang, scale=scale, yaw_drift_deg_min=yaw
+        )
+    named = args.sensor if not any(x is not None for x in v.values()) else "custom"
+    capture = Capture(sensor, link, state, named)
+    if problems := capture.problems():
+        raise InputError("; ".join(problems))
+    return capture
 
 
 def run(args: argparse.Namespace) -> int:
     """Render the flight and print where it went."""
     from dronecap import workspace
+    from dronecap.errors import InputError
     from dronecap.simulator.simulate import simulate
 
-    out = workspace.resolve(args.workdir, args.output, "flight.mp4")
+    if args.seed < 0:
+        raise InputError(f"--seed must be >= 0, got {args.seed}")
+    if args.frames < 2 or args.frames > 100_000:
+        raise InputError(f"--frames must be 2-100000, got {args.frames}")
+    capture = capture_from_args(args)
+    default = "flight.mp4" if args.format == "mp4" else "capture"
+    out = workspace.resolve(args.workdir, args.output, default)
     t0 = time.perf_counter()
-    video, gt = simulate(args.scene, out, frames=args.frames, seed=args.seed, codec=args.codec)
+    path, gt = simulate(
+        args.scene,
+        out,
+        frames=args.frames,
+        seed=args.seed,
+        codec=args.codec,
+        capture=capture,
+        fmt=args.format,
+    )
     dt = time.perf_counter() - t0
     print(
-        f"rendered {args.frames} frames of '{args.scene}' (seed {args.seed}) in {dt:.1f} s "
-        f"({args.frames / dt:.0f} frames/s) -> {video}, ground truth {gt}"
+        f"rendered {args.frames} frames of '{args.scene}' (seed {args.seed}, sensor "
+        f"{capture.sensor_name}) in {dt:.1f} s ({args.frames / dt:.0f} frames/s) -> {path}, "
+        f"ground truth {gt}"
     )
     return 0
