@@ -87,8 +87,9 @@ class Camera:
 
     @property
     def is_pinhole(self) -> bool:
-        """True when there is no distortion (all parameters zero counts as none)."""
-        return not any(self.distortion)
+        """True when there is no distortion (all parameters zero counts as none; a fisheye
+        is never a pinhole: its projection is equidistant even with zero coefficients)."""
+        return not self.is_fisheye and not any(self.distortion)
 
     def matrix(self) -> np.ndarray:
         """3x3 K matrix, float64."""

@@ -1,10 +1,11 @@
-"""Frame geometry: gray conversion, crop to the target aspect, area resize, and the intrinsics.
+"""Frame geometry: gray conversion, crop to the target aspect, area resize, and the camera.
 
 Coordinates are continuous pixel coordinates with pixel centres at integer + 0.5 (OpenCV's
 convention, the one :mod:`dronecap.datasets` stores). In those coordinates a crop that starts at
 pixel column ``x0`` shifts every point by ``-x0`` and a resize by ``s = new / old`` multiplies every
-point by ``s`` -- exactly what ``cv2.resize`` does to pixel centres -- so a pinhole camera
-``(fx, fy, cx, cy)`` becomes ``(fx s_x, fy s_y, (cx - x0) s_x, (cy - y0) s_y)``.
+point by ``s`` -- exactly what ``cv2.resize`` does to pixel centres -- so a camera
+``(fx, fy, cx, cy)`` becomes ``(fx s_x, fy s_y, (cx - x0) s_x, (cy - y0) s_y)`` with its lens
+distortion unchanged (:meth:`Framing.camera`, via ``Camera.cropped`` and ``Camera.scaled_to``).
 
 Gray is ITU-R BT.601 luma, ``Y = 0.299 R + 0.587 G + 0.114 B`` (``cv2.COLOR_BGR2GRAY``), on the
 gamma-encoded 8-bit values as decoded; this is also the Y plane a YUV video stores.
@@ -16,26 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dronecap.camera import Camera
+
 LUMA_WEIGHTS = {"r": 0.299, "g": 0.587, "b": 0.114}  # BT.601, as cv2.COLOR_BGR2GRAY
-
-
-@dataclass(frozen=True)
-class CameraModel:
-    """Pinhole intrinsics in pixels of a given image size (pixel centres at integer + 0.5)."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    def scaled_to(self, width: int, height: int) -> CameraModel:
-        """The same camera for an image of ``width`` x ``height`` (same field of view)."""
-        sx, sy = width / self.width, height / self.height
-        return CameraModel(
-            self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, int(width), int(height)
-        )
 
 
 @dataclass(frozen=True)
@@ -59,21 +43,12 @@ class Framing:
         """True when the crop is smaller than the output along some axis (no new detail)."""
         return self.box[2] < self.size[0] or self.box[3] < self.size[1]
 
-    def camera(self, cam: CameraModel) -> CameraModel:
-        """Transform source intrinsics through the crop and the resize.
-
-        ``cam`` must describe the source frames (same width and height).
-        """
-        x0, y0, _, _ = self.box
-        sx, sy = self.scale
-        return CameraModel(
-            cam.fx * sx,
-            cam.fy * sy,
-            (cam.cx - x0) * sx,
-            (cam.cy - y0) * sy,
-            self.size[0],
-            self.size[1],
-        )
+    def camera(self, cam: Camera) -> Camera:
+        """The camera of the output frames: ``cam`` (of the source frames, same width and
+        height) through the crop and the resize. The distortion acts on normalised
+        coordinates, so it is carried through unchanged (the frames are not undistorted)."""
+        x0, y0, w, h = self.box
+        return cam.cropped(x0, y0, w, h).scaled_to(*self.size)
 
     def apply(self, frame: np.ndarray) -> np.ndarray:
         """Crop, convert to gray and resize one decoded frame (uint8/uint16 [H_src, W_src] or

@@ -15,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dronecap.capture.calibration import load_intrinsics
+from dronecap.camera import Camera
+from dronecap.camera.files import load_camera
 from dronecap.capture.decode import DecodedFrame, SourceInfo, open_source, prefetch, progress_stream
-from dronecap.capture.framing import LUMA_WEIGHTS, CameraModel, Framing, make_framing
+from dronecap.capture.framing import LUMA_WEIGHTS, Framing, make_framing
 from dronecap.capture.quality import SCORE_NAMES, MotionTracker, frame_scores
 from dronecap.capture.selection import (
     REASONS,
@@ -37,7 +38,7 @@ class IngestParams:
     size: tuple[int, int] = (160, 160)  # output (width, height) in pixels
     crop: str = "center"  # "center", "stretch" or "X,Y,W,H" (see framing.make_framing)
     fps: float = 30.0  # frame rate assumed for an image folder
-    intrinsics: str | None = None  # "fx,fy,cx,cy" or a calibration JSON path; None: unknown
+    intrinsics: str | None = None  # "fx,fy,cx,cy" or a calibration file (camera.files); None
     allow_truncated: bool = False  # keep what decodes from a truncated video
     selection: SelectionParams = field(default_factory=SelectionParams)
 
@@ -48,7 +49,8 @@ class IngestResult:
 
     info: SourceInfo
     framing: Framing
-    camera: CameraModel | None  # intrinsics of the output frames, if the source's were given
+    camera: Camera | None  # camera (with distortion) of the output frames, when known
+    camera_source: str  # "calibration", "flight.json" or "none"
     images: np.ndarray  # uint8 [M, h, w, 1] kept frames
     names: list[str]  # [M]
     tables: dict[str, np.ndarray]  # per decoded frame [N]: scores, source_index, timestamp
@@ -78,6 +80,7 @@ class IngestResult:
             "dropped": dropped,
             "min_motion_used": self.selection.min_motion,
             "coverage_gaps": [list(g) for g in self.selection.gaps],
+            "camera_source": self.camera_source,
             "crop_box": list(self.framing.box),
             "size": list(self.framing.size),
             "luma_weights": LUMA_WEIGHTS,
@@ -110,9 +113,10 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
         framing = make_framing((info.width, info.height), params.size, params.crop)
     except ValueError as err:
         raise InputError(str(err), info.path) from None
-    camera = None
+    camera, camera_source = None, "none"
     if params.intrinsics is not None:
-        camera = framing.camera(load_intrinsics(params.intrinsics, (info.width, info.height)))
+        source_camera, camera_source = load_camera(params.intrinsics, (info.width, info.height))
+        camera = framing.camera(source_camera)
     warnings: list[str] = []
     if framing.upsamples:
         warnings.append(
@@ -150,6 +154,7 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
         info=info,
         framing=framing,
         camera=camera,
+        camera_source=camera_source,
         images=images,
         names=names,
         tables={k: v for k, v in tables.items() if k != "name"},

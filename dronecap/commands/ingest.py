@@ -31,9 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--intrinsics",
-        help="source intrinsics 'fx,fy,cx,cy' (source pixels) or a calibration JSON (e.g. the "
-        "simulator's flight.json); default: SOURCE_STEM.json beside the video if it has "
-        "intrinsics; 'none' to ignore it",
+        help="source camera: 'fx,fy,cx,cy' (source pixels), a `dronecap calibrate` JSON, an "
+        "OpenCV YAML/XML calibration or the simulator's flight.json (distortion is kept); "
+        "default: SOURCE_STEM.json beside the video if it has intrinsics; 'none' to ignore it",
     )
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of an image folder")
     p.add_argument(
@@ -75,7 +75,7 @@ def _ingest(args: argparse.Namespace, selection: object) -> int:
     from dronecap import workspace
     from dronecap.capture.framing import parse_size
     from dronecap.capture.ingest import IngestParams, ingest, params_record, tables_to_extra
-    from dronecap.datasets import Dataset, Intrinsics, provenance, write_dataset
+    from dronecap.datasets import Dataset, provenance, write_dataset
     from dronecap.errors import InputError
     from dronecap.files import sha256_file
 
@@ -107,9 +107,7 @@ def _ingest(args: argparse.Namespace, selection: object) -> int:
         names=result.names,
         source_index=result.tables["source_index"][kept],
         timestamps=result.tables["timestamp"][kept],
-        intrinsics=None
-        if cam is None
-        else Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height),
+        intrinsics=cam,
         extra=tables_to_extra(result.tables, result.selection),
         attrs=result.summary(),
         provenance=provenance("ingest", params_record(params), {str(source): sha256_file(source)}),

@@ -1,23 +1,20 @@
-"""Crop, resize and intrinsics maths, worked out by hand."""
+"""Crop, resize and camera maths, worked out by hand."""
 
 from __future__ import annotations
-
-import json
 
 import cv2
 import numpy as np
 import pytest
 
-from dronecap.capture.calibration import load_intrinsics
-from dronecap.capture.framing import CameraModel, make_framing, parse_size, to_gray
-from dronecap.errors import InputError
+from dronecap.camera import Camera
+from dronecap.capture.framing import make_framing, parse_size, to_gray
 
 
 def test_center_crop_of_640x480_and_its_intrinsics():
     f = make_framing((640, 480), (160, 160), "center")
     assert f.box == (80, 0, 480, 480)  # (640 - 480) / 2 = 80 cut on each side
     assert f.scale == (1 / 3, 1 / 3)  # 160 / 480
-    cam = f.camera(CameraModel(500.0, 510.0, 320.0, 240.0, 640, 480))
+    cam = f.camera(Camera(500.0, 510.0, 320.0, 240.0, 640, 480))
     # fx' = 500 / 3, cx' = (320 - 80) / 3 = 80, cy' = 240 / 3 = 80
     assert cam.fx == pytest.approx(500 / 3)
     assert cam.fy == pytest.approx(170.0)
@@ -29,7 +26,7 @@ def test_odd_source_161x97_crops_then_upsamples():
     f = make_framing((161, 97), (160, 160), "center")
     assert f.box == (32, 0, 97, 97)  # (161 - 97) // 2 = 32
     assert f.upsamples
-    cam = f.camera(CameraModel(100.0, 100.0, 80.5, 48.5, 161, 97))
+    cam = f.camera(Camera(100.0, 100.0, 80.5, 48.5, 161, 97))
     s = 160 / 97
     assert cam.cx == pytest.approx((80.5 - 32) * s)  # = 48.5 * s = 80: centre stays centre
     assert cam.cx == pytest.approx(80.0)
@@ -70,37 +67,24 @@ def test_parse_size():
     assert parse_size("200x120") == (200, 120)
 
 
-def test_calibration_forms(tmp_path):
-    cam = load_intrinsics("500,500,320,240", (640, 480))
-    assert (cam.fx, cam.cx, cam.width) == (500.0, 320.0, 640)
-    flight = tmp_path / "flight.json"
-    flight.write_text(
-        json.dumps(
-            {"intrinsics": {"fx": 120, "fy": 120, "cx": 80, "cy": 80, "width": 160, "height": 160}}
-        )
-    )
-    assert load_intrinsics(str(flight), (160, 160)).fx == 120.0
-    # Calibrated at 1280x960, recorded at 640x480: everything halves.
-    k = tmp_path / "calib.json"
-    k.write_text(
-        json.dumps(
-            {
-                "K": [[1000, 0, 640], [0, 1000, 480], [0, 0, 1]],
-                "image_width": 1280,
-                "image_height": 960,
-            }
-        )
-    )
-    half = load_intrinsics(str(k), (640, 480))
-    assert (half.fx, half.cx, half.cy) == (500.0, 320.0, 240.0)
-    with pytest.raises(InputError, match="aspect"):
-        load_intrinsics(str(k), (640, 640))
-    with pytest.raises(InputError):
-        load_intrinsics("1,2,3", (640, 480))
-
-
 def test_area_resize_is_what_cv2_does():
     img = (np.arange(240 * 320) % 251).astype(np.uint8).reshape(240, 320)
     f = make_framing((320, 240), (160, 160), "center")
     expected = cv2.resize(img[:, 40:280], (160, 160), interpolation=cv2.INTER_AREA)
     np.testing.assert_array_equal(f.apply(img), expected)
+
+
+def test_distorted_point_through_crop_and_resize_lands_where_the_stored_camera_projects():
+    """A 3D point projected by the 640x480 source camera (OpenCV, with distortion), moved by the
+    crop (-x0) and the resize (x s), must be where the 160x160 camera projects it."""
+    src = Camera(500.0, 505.0, 330.0, 230.0, 640, 480, "OPENCV", (-0.2, 0.05, 1e-3, -2e-3))
+    f = make_framing((640, 480), (160, 160), "center")
+    out = f.camera(src)
+    assert out.distortion == src.distortion and (out.width, out.height) == (160, 160)
+    rng = np.random.default_rng(0)
+    xyz = np.c_[rng.uniform(-0.4, 0.4, (50, 2)), np.ones(50)]
+    k = src.matrix()
+    uv_src, _ = cv2.projectPoints(xyz, np.zeros(3), np.zeros(3), k, src.opencv_coeffs())
+    x0, y0, w, h = f.box  # (80, 0, 480, 480)
+    expected = (uv_src.reshape(-1, 2) - [x0, y0]) * [160 / w, 160 / h]
+    np.testing.assert_allclose(out.project(xyz), expected, atol=1e-6)

@@ -1,0 +1,49 @@
+"""``dronecap ingest --intrinsics`` stores the calibration's full camera in frames.h5."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dronecap.cli import main
+from dronecap.datasets import open_dataset
+from tests.capture.conftest import pan, write_video
+
+
+def test_calibration_json_distortion_reaches_frames_h5(tmp_path):
+    video = write_video(tmp_path / "pan.avi", pan(24, (320, 240), 3.0))
+    calib = tmp_path / "calib.json"
+    # Calibrated at 640x480 (twice the video): fx 600 -> 300, cx 330 -> 165, cy 250 -> 125.
+    k = [[600.0, 0, 330.0], [0, 604.0, 250.0], [0, 0, 1]]
+    dist = [-0.1, 0.02, 0.001, 0.0, 0.0]
+    calib.write_text(json.dumps({"K": k, "distortion": dist, "width": 640, "height": 480}))
+    assert main(["ingest", str(video), "--intrinsics", str(calib), "--workdir", str(tmp_path)]) == 0
+    ds = open_dataset(tmp_path / "frames.h5", kinds=("frames",))
+    cam = ds.intrinsics
+    assert ds.attrs["camera_source"] == "calibration"
+    # Centre crop of 320x240: x0 = 40, 240x240 -> 160x160 (s = 2/3).
+    s = 2 / 3
+    assert cam.fx == pytest.approx(300 * s) and cam.fy == pytest.approx(302 * s)
+    assert cam.cx == pytest.approx((165 - 40) * s) and cam.cy == pytest.approx(125 * s)
+    np.testing.assert_allclose(cam.opencv_coeffs()[:5], dist)
+
+
+def test_no_intrinsics_says_none(tmp_path):
+    video = write_video(tmp_path / "pan.avi", pan(24, (320, 240), 3.0))
+    assert main(["ingest", str(video), "--workdir", str(tmp_path)]) == 0
+    ds = open_dataset(tmp_path / "frames.h5", kinds=("frames",))
+    assert ds.intrinsics is None and ds.attrs["camera_source"] == "none"
+
+
+def test_wrong_aspect_calibration_is_one_line_and_no_output(tmp_path, capsys):
+    video = write_video(tmp_path / "pan.avi", pan(24, (320, 240), 3.0))
+    calib = tmp_path / "calib.json"
+    calib.write_text(
+        json.dumps({"K": [[500, 0, 320], [0, 500, 320], [0, 0, 1]], "size": [640, 640]})
+    )
+    assert main(["ingest", str(video), "--intrinsics", str(calib), "--workdir", str(tmp_path)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "aspect" in err[0] and str(calib) in err[0]
+    assert not (tmp_path / "frames.h5").exists()
