@@ -21,6 +21,18 @@ Intrinsics (:class:`dronecap.camera.Camera`: fx, fy, cx, cy plus a lens-distorti
 pixels of the stored resolution, pixel centres at integer + 0.5
 (OpenCV convention: the centre of the top-left pixel is (0.5, 0.5) in continuous coordinates,
 so a pixel (u, v) index maps to the ray through (u + 0.5, v + 0.5)).
+
+Integrity (format_version 2, what :func:`write_dataset` writes): every array carries HDF5's
+Fletcher-32 checksum filter, the file's metadata (superblock, object headers, attributes) is in
+the HDF5 1.10 layout whose blocks carry checksums, and strings are fixed-length (stored inside
+the checksummed blocks, not in HDF5's unchecked global heap). A flipped byte anywhere that
+matters is therefore a read error, never a different image or pose. Version 1 files (no
+checksums) are still read.
+
+Validation (:meth:`Dataset.validate`, run on every write and every read) checks the schema,
+dtypes and shapes, finite values, rigid camera rotations, the camera (``Camera.problems``), an
+AABB with max > min in front of the cameras, 0 <= near < far, a background in [0, 1]. Every
+failure is a :class:`DatasetError`: one line naming the file, the field and the problem.
 """
 
 from __future__ import annotations
@@ -37,13 +49,16 @@ import numpy as np
 
 from dronecap.camera import Camera
 from dronecap.errors import InputError
-from dronecap.files import atomic_output
+from dronecap.files import atomic_output, require_free_space
 
 FORMAT = "dronecap"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: checksummed arrays and metadata; 1: no checksums (still read)
+READ_VERSIONS = (1, 2)
 KINDS = ("frames", "posed", "dataset", "shard")
 SPLITS = {"train": 0, "val": 1, "test": 2}
+ROTATION_TOL = 1e-4  # max |R^T R - I| entry of a camera rotation (float64 poses reach 1e-12)
 Intrinsics = Camera  # the stored camera: dronecap.camera.Camera (one camera type)
+_CAMERA_FIELDS = {f.name for f in dataclasses.fields(Camera)}
 
 
 class DatasetError(InputError):
@@ -121,52 +136,141 @@ class Dataset:
         )
 
     def validate(self, path: str | Path | None = None) -> None:
-        """Raise :class:`DatasetError` naming ``path`` when shapes or dtypes disagree."""
-        where = path if path is not None else "<dataset>"
+        """Raise :class:`DatasetError` naming ``path`` and the field for the first problem found:
+        schema, dtypes, shapes, non-finite values, non-rigid poses, a bad camera, bounds,
+        near/far or background out of range."""
+        problem = self.problem()
+        if problem is not None:
+            raise DatasetError(problem, path if path is not None else "<dataset>")
 
-        def fail(msg: str) -> None:
-            raise DatasetError(msg, where)
-
+    def problem(self) -> str | None:
+        """The first thing wrong with this dataset ("<field>: <problem>"), or None."""
         im = self.images
-        if im.dtype != np.uint8 or im.ndim != 4 or im.shape[3] not in (1, 3):
-            fail(f"images must be uint8 [N,H,W,1|3], found {im.dtype} {list(im.shape)}")
+        if not isinstance(im, np.ndarray) or im.dtype != np.uint8 or im.ndim != 4:
+            return f"images: must be uint8 [N,H,W,1|3], found {_describe(im)}"
+        if im.shape[3] not in (1, 3) or min(im.shape[1:3]) < 1:
+            return f"images: must be uint8 [N,H,W,1|3] with H, W >= 1, found {list(im.shape)}"
         if self.kind not in KINDS:
-            fail(f"unknown kind {self.kind!r}, expected one of {KINDS}")
+            return f"kind: unknown kind {self.kind!r}, expected one of {list(KINDS)}"
         n, h, w = im.shape[:3]
         per_frame = {
-            "alpha": (self.alpha, (n, h, w)),
-            "poses": (self.poses, (n, 4, 4)),
-            "source_index": (self.source_index, (n,)),
-            "timestamps": (self.timestamps, (n,)),
-            "split": (self.split, (n,)),
-            "near_far": (self.near_far, (n, 2)),
+            "alpha": (self.alpha, (n, h, w), "u"),
+            "poses": (self.poses, (n, 4, 4), "f"),
+            "source_index": (self.source_index, (n,), "iu"),
+            "timestamps": (self.timestamps, (n,), "fiu"),
+            "split": (self.split, (n,), "iu"),
+            "near_far": (self.near_far, (n, 2), "fiu"),
+            **{f"shards/{k}": (v, (n,), "iu") for k, v in self.shards.items()},
         }
-        for name, (arr, shape) in per_frame.items():
-            if arr is not None and tuple(arr.shape) != shape:
-                fail(f"{name} has shape {list(arr.shape)}, expected {list(shape)}")
+        for name, (arr, shape, kinds) in per_frame.items():
+            if arr is None:
+                continue
+            if not isinstance(arr, np.ndarray) or arr.dtype.kind not in kinds:
+                return f"{name}: wrong type {_describe(arr)}"
+            if tuple(arr.shape) != shape:
+                return f"{name}: has shape {list(arr.shape)}, expected {list(shape)}"
+            if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+                return f"{name}: contains non-finite values (NaN or Inf)"
         if self.alpha is not None and self.alpha.dtype != np.uint8:
-            fail(f"alpha must be uint8, found {self.alpha.dtype}")
+            return f"alpha: must be uint8, found {self.alpha.dtype}"
         if self.split is not None and not np.isin(self.split, [-1, *SPLITS.values()]).all():
-            fail(f"split values must be -1, 0, 1 or 2, found {sorted(set(self.split.tolist()))}")
+            found = sorted(set(self.split.tolist()))[:8]
+            return f"split: values must be -1, 0, 1 or 2, found {found}"
         for name, arr in self.shards.items():
-            if tuple(arr.shape) != (n,):
-                fail(f"shards/{name} has shape {list(arr.shape)}, expected [{n}]")
-        if self.names is not None and len(self.names) != n:
-            fail(f"names has {len(self.names)} entries, expected {n}")
-        if self.poses is not None and not np.isfinite(self.poses).all():
-            fail("poses contain non-finite values")
-        if self.aabb is not None:
-            a = np.asarray(self.aabb)
-            if a.shape != (2, 3) or not np.all(a[1] > a[0]):
-                fail(f"aabb must be [[min xyz], [max xyz]] with max > min, found {a.tolist()}")
+            if len(arr) and arr.min() < -1:
+                return f"shards/{name}: client numbers must be >= -1, found {int(arr.min())}"
+        if self.names is not None:
+            if len(self.names) != n:
+                return f"names: has {len(self.names)} entries, expected {n}"
+            if not all(isinstance(s, str) for s in self.names):
+                return "names: entries must be strings"
+        if self.poses is not None and (bad := _pose_problem(self.poses)) is not None:
+            return f"poses: {bad}"
+        if self.near_far is not None and n:
+            nf = self.near_far
+            if not ((nf[:, 0] >= 0).all() and (nf[:, 1] > nf[:, 0]).all()):
+                i = int(np.flatnonzero(~((nf[:, 0] >= 0) & (nf[:, 1] > nf[:, 0])))[0])
+                return f"near_far: must satisfy 0 <= near < far, frame {i} has {nf[i].tolist()}"
+        if self.aabb is not None and (bad := self._aabb_problem()) is not None:
+            return f"aabb: {bad}"
+        if self.normalization is not None:
+            m = self.normalization
+            if not _float_array(m, (4, 4)):
+                return f"normalization: must be a finite float [4, 4], found {_describe(m)}"
         if self.intrinsics is not None:
             k = self.intrinsics
-            if (k.width, k.height) != (w, h):
-                fail(f"intrinsics are for {k.width}x{k.height} but images are {w}x{h}")
+            if not isinstance(k, Camera):
+                return f"intrinsics: must be a Camera, found {type(k).__name__}"
             for problem in k.problems():
-                fail(problem)
-        if self.background is not None and len(self.background) != im.shape[3]:
-            fail(f"background has {len(self.background)} values for {im.shape[3]} channels")
+                return f"intrinsics: {problem}"
+            if (k.width, k.height) != (w, h):
+                return f"intrinsics: are for {k.width}x{k.height} but images are {w}x{h}"
+        if self.background is not None:
+            bg = self.background
+            if len(bg) != im.shape[3]:
+                return f"background: has {len(bg)} values for {im.shape[3]} channels"
+            if not all(_real(x) and 0.0 <= float(x) <= 1.0 for x in bg):
+                return f"background: values must be finite and in [0, 1], found {list(bg)}"
+        for name in ("provenance", "attrs"):
+            if not isinstance(getattr(self, name), dict):
+                return f"{name}: must be a JSON object, found {type(getattr(self, name)).__name__}"
+        return None
+
+    def _aabb_problem(self) -> str | None:
+        a = self.aabb
+        if not _float_array(a, (2, 3)) or not np.all(a[1] > a[0]):
+            return f"must be finite [[min xyz], [max xyz]] with max > min, found {_describe(a)}"
+        if self.poses is not None and self.n:
+            corners = np.stack(np.meshgrid(*np.asarray(a).T, indexing="ij"), -1).reshape(8, 3)
+            rel = corners[None] - self.poses[:, None, :3, 3]  # [N, 8, 3]
+            depth = np.einsum("nkj,nj->nk", rel, self.poses[:, :3, 2])
+            if not (depth > 0).any():
+                return f"{np.asarray(a).tolist()} lies behind every camera"
+        return None
+
+
+def _pose_problem(poses: np.ndarray) -> str | None:
+    """What makes these camera-to-world poses [N, 4, 4] not rigid (None when they are)."""
+    if not len(poses):
+        return None
+    bottom = np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(1)
+    if (bottom > 1e-9).any():
+        i = int(np.argmax(bottom))
+        return f"frame {i}: last row must be [0, 0, 0, 1], found {poses[i, 3].tolist()}"
+    r = poses[:, :3, :3]
+    err = np.abs(np.einsum("nji,njk->nik", r, r) - np.eye(3)).max((1, 2))
+    if (err > ROTATION_TOL).any():
+        i = int(np.argmax(err))
+        return f"frame {i}: rotation is not orthonormal (|R^T R - I| = {err[i]:.3g})"
+    det = np.linalg.det(r)
+    if (det < 0).any():
+        i = int(np.flatnonzero(det < 0)[0])
+        return f"frame {i}: rotation is a reflection (det {det[i]:.3f}), not a rotation"
+    return None
+
+
+def _real(x: object) -> bool:
+    """True for a finite int/float (numpy included), False for bools, strings and the rest."""
+    if isinstance(x, bool | np.bool_) or not isinstance(x, int | float | np.integer | np.floating):
+        return False
+    return bool(np.isfinite(float(x)))
+
+
+def _float_array(a: object, shape: tuple[int, ...]) -> bool:
+    return (
+        isinstance(a, np.ndarray)
+        and a.dtype.kind in "fiu"
+        and a.shape == shape
+        and bool(np.isfinite(a).all())
+    )
+
+
+def _describe(a: object) -> str:
+    if isinstance(a, np.ndarray):
+        if a.size <= 8 and a.dtype.kind in "fiub":
+            return f"{a.dtype} {a.tolist()}"
+        return f"{a.dtype} {list(a.shape)}"
+    return f"{type(a).__name__} {str(a)[:60]!r}"
 
 
 def provenance(stage: str, params: dict[str, Any], inputs: dict[str, str]) -> dict[str, Any]:
@@ -180,77 +284,119 @@ def provenance(stage: str, params: dict[str, Any], inputs: dict[str, str]) -> di
 
 
 def write_dataset(path: str | Path, ds: Dataset) -> Path:
-    """Validate ``ds`` and write it atomically to ``path`` (temporary name, then rename)."""
+    """Validate ``ds`` and write it atomically to ``path`` (temporary name, then rename).
+
+    Refuses (one line, nothing written) when the target's filesystem has less free space than
+    the uncompressed arrays need: HDF5 may crash the process on a full disk.
+    """
     path = Path(path)
     ds.validate(path)
-    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+    arrays = [ds.images, ds.alpha, ds.poses, ds.near_far, *ds.shards.values(), *ds.extra.values()]
+    need = sum(int(np.asarray(a).nbytes) for a in arrays if a is not None) + (1 << 20)
+    require_free_space(path, need)
+    with atomic_output(path) as tmp, h5py.File(tmp, "w", libver=("v110", "latest")) as f:
         n, h, w, c = ds.images.shape
-        f.attrs["format"] = FORMAT
-        f.attrs["format_version"] = FORMAT_VERSION
-        f.attrs["kind"] = ds.kind
-        f.create_dataset(
-            "images", data=ds.images, chunks=(1, h, w, c) if n else None, compression="lzf"
-        )
+        _text_attr(f, "format", FORMAT)
+        f.attrs["format_version"] = np.int64(FORMAT_VERSION)
+        _text_attr(f, "kind", ds.kind)
+        _array(f, "images", ds.images, chunks=(1, h, w, c), lzf=True)
         if ds.alpha is not None:
-            f.create_dataset(
-                "alpha", data=ds.alpha, chunks=(1, h, w) if n else None, compression="lzf"
-            )
-        arrays = {
+            _array(f, "alpha", ds.alpha, chunks=(1, h, w), lzf=True)
+        arrays_by_name = {
             "poses": (ds.poses, np.float64),
             "source_index": (ds.source_index, np.int64),
             "timestamps": (ds.timestamps, np.float64),
             "split": (ds.split, np.int8),
             "near_far": (ds.near_far, np.float64),
         }
-        for name, (arr, dtype) in arrays.items():
+        for name, (arr, dtype) in arrays_by_name.items():
             if arr is not None:
-                f.create_dataset(name, data=np.asarray(arr, dtype=dtype))
+                _array(f, name, np.asarray(arr, dtype=dtype))
         if ds.names is not None:
-            f.create_dataset("names", data=np.array(ds.names, dtype=h5py.string_dtype()))
+            _array(f, "names", _fixed_strings(ds.names))
         for name, arr in ds.shards.items():
-            f.create_dataset(f"shards/{name}", data=np.asarray(arr, dtype=np.int16))
+            _array(f, f"shards/{name}", np.asarray(arr, dtype=np.int16))
         for name, arr in ds.extra.items():
             arr = np.asarray(arr)
-            if arr.dtype.kind == "U":
-                arr = arr.astype(h5py.string_dtype())
-            f.create_dataset(f"extra/{name}", data=arr)
+            _array(f, f"extra/{name}", _fixed_strings(arr) if arr.dtype.kind == "U" else arr)
         if ds.intrinsics is not None:
-            f.attrs["intrinsics"] = json.dumps(dataclasses.asdict(ds.intrinsics))
+            _text_attr(f, "intrinsics", json.dumps(dataclasses.asdict(ds.intrinsics)))
         if ds.aabb is not None:
             f.attrs["aabb"] = np.asarray(ds.aabb, dtype=np.float64)
         if ds.normalization is not None:
             f.attrs["normalization"] = np.asarray(ds.normalization, dtype=np.float64)
         if ds.background is not None:
             f.attrs["background"] = np.asarray(ds.background, dtype=np.float64)
-        f.attrs["provenance"] = json.dumps(ds.provenance)
-        f.attrs["stage_attrs"] = json.dumps(ds.attrs)
+        _text_attr(f, "provenance", json.dumps(ds.provenance, allow_nan=False))
+        _text_attr(f, "stage_attrs", json.dumps(ds.attrs, allow_nan=False))
     return path
 
 
+def _array(
+    f: h5py.File, name: str, data: np.ndarray, chunks: tuple[int, ...] | None = None, lzf=False
+) -> None:
+    """Store ``data`` with a Fletcher-32 checksum (empty arrays have nothing to check)."""
+    if data.size == 0:
+        f.create_dataset(name, data=data)
+        return
+    f.create_dataset(
+        name,
+        data=data,
+        chunks=chunks or data.shape,
+        compression="lzf" if lzf else None,
+        fletcher32=True,
+    )
+
+
+def _text_attr(f: h5py.File, name: str, text: str) -> None:
+    """A fixed-length UTF-8 string attribute (kept in the checksummed object header)."""
+    f.attrs.create(name, np.bytes_(text.encode()))
+
+
+def _fixed_strings(items: Any) -> np.ndarray:
+    """Strings -> fixed-length UTF-8 bytes [N] (h5py marks them as such)."""
+    raw = [str(s).encode() for s in items]
+    width = max([len(b) for b in raw] + [1])
+    return np.array(raw, dtype=h5py.string_dtype("utf-8", width))
+
+
 def read_header(path: str | Path) -> dict[str, Any]:
-    """Check a file is a dronecap dataset this version can read; return its top-level attrs."""
+    """Check a file is a dronecap dataset this version can read; return its top-level attrs
+    (``format_version`` as an int, strings decoded)."""
     path = Path(path)
     if not path.exists():
         raise DatasetError("no such file", path)
+    if path.is_dir():
+        raise DatasetError("is a folder, expected a dataset file", path)
     try:
         with h5py.File(path, "r") as f:
             attrs = dict(f.attrs)
-    except OSError as err:
+    except Exception as err:  # h5py raises many types for damaged headers  # noqa: BLE001
         raise DatasetError(
-            f"not a readable HDF5 file (truncated or corrupt?): {err}", path
+            f"not a readable HDF5 file (truncated or corrupt?): {_one_line(err)}", path
         ) from None
+    try:
+        attrs = {k: _as_text(v) for k, v in attrs.items()}
+    except UnicodeDecodeError as err:
+        raise DatasetError(f"attributes: text that is not UTF-8 ({err})", path) from None
     fmt = attrs.get("format")
     if fmt != FORMAT:
         raise DatasetError(f"not a dronecap dataset (format attribute {fmt!r})", path)
-    version = int(attrs.get("format_version", -1))
+    version = attrs.get("format_version")
+    if isinstance(version, np.ndarray) and version.shape == ():
+        version = version[()]
+    if isinstance(version, bool | np.bool_) or not isinstance(version, int | np.integer):
+        raise DatasetError(f"format_version: must be an integer, found {version!r}", path)
+    version = int(version)
     if version > FORMAT_VERSION:
         raise DatasetError(
             f"format_version {version} is newer than this dronecap reads ({FORMAT_VERSION});"
             " upgrade dronecap",
             path,
         )
-    if version < 1:
+    if version not in READ_VERSIONS:
         raise DatasetError(f"invalid format_version {version}", path)
+    attrs["format_version"] = version
     return attrs
 
 
@@ -262,56 +408,152 @@ def open_dataset(path: str | Path, kinds: tuple[str, ...] | None = None) -> Data
         kinds: if given, the file's ``kind`` must be one of these (e.g. ``("dataset", "shard")``).
 
     Raises:
-        DatasetError: one line naming the file and what is wrong.
+        DatasetError: one line naming the file, the field and what is wrong (a checksum
+            mismatch included).
     """
     path = Path(path)
     attrs = read_header(path)
-    kind = str(attrs.get("kind", ""))
+    kind = attrs.get("kind")
+    if not isinstance(kind, str) or kind not in KINDS:
+        raise DatasetError(f"kind: unknown kind {kind!r}, expected one of {list(KINDS)}", path)
     if kinds is not None and kind not in kinds:
         raise DatasetError(f"is a {kind!r} file, expected one of {list(kinds)}", path)
+    checksums = attrs["format_version"] >= 2
+    where = "file structure"
     try:
         with h5py.File(path, "r") as f:
-            if "images" not in f:
-                raise DatasetError("missing required dataset 'images'", path)
-
-            def opt(name: str) -> np.ndarray | None:
-                return f[name][()] if name in f else None
-
-            intr = attrs.get("intrinsics")
-            k = None
-            if intr is not None:
-                d = json.loads(intr)
-                d["distortion"] = tuple(d.get("distortion", ()))
-                k = Intrinsics(**d)
-            bg = attrs.get("background")
+            if "images" not in f or not isinstance(f["images"], h5py.Dataset):
+                raise DatasetError("images: missing required dataset", path)
+            names = ["images", "alpha", "poses", "names", "source_index", "timestamps", "split"]
+            names.append("near_far")
+            for group in ("shards", "extra"):
+                if group in f:
+                    if not isinstance(f[group], h5py.Group):
+                        raise DatasetError(f"{group}: expected a group of arrays", path)
+                    names += [f"{group}/{k}" for k in f[group]]
+            raw: dict[str, np.ndarray] = {}
+            for where in names:
+                if where in f:
+                    raw[where] = _read_array(f, where, checksums, path)
+            where = "attributes"
             ds = Dataset(
-                images=f["images"][()],
+                images=raw["images"],
                 kind=kind,
-                alpha=opt("alpha"),
-                poses=opt("poses"),
-                intrinsics=k,
-                names=[s.decode() for s in f["names"][()]] if "names" in f else None,
-                source_index=opt("source_index"),
-                timestamps=opt("timestamps"),
-                split=opt("split"),
-                near_far=opt("near_far"),
-                aabb=attrs.get("aabb"),
-                normalization=attrs.get("normalization"),
-                background=None if bg is None else tuple(float(x) for x in np.atleast_1d(bg)),
-                shards={k2: v[()] for k2, v in f["shards"].items()} if "shards" in f else {},
-                extra={k2: _decode(v[()]) for k2, v in f["extra"].items()} if "extra" in f else {},
-                provenance=json.loads(attrs.get("provenance", "{}")),
-                attrs=json.loads(attrs.get("stage_attrs", "{}")),
+                alpha=raw.get("alpha"),
+                poses=raw.get("poses"),
+                intrinsics=_camera(attrs.get("intrinsics"), path),
+                names=None if "names" not in raw else [_as_text(s) for s in raw["names"]],
+                source_index=raw.get("source_index"),
+                timestamps=raw.get("timestamps"),
+                split=raw.get("split"),
+                near_far=raw.get("near_far"),
+                aabb=_float_attr(attrs, "aabb", path),
+                normalization=_float_attr(attrs, "normalization", path),
+                background=_background(attrs, path),
+                shards={k[7:]: v for k, v in raw.items() if k.startswith("shards/")},
+                extra={k[6:]: _decode(v) for k, v in raw.items() if k.startswith("extra/")},
+                provenance=_json_object(attrs, "provenance", path),
+                attrs=_json_object(attrs, "stage_attrs", path),
             )
     except DatasetError:
         raise
-    except (OSError, KeyError, ValueError, TypeError) as err:
-        raise DatasetError(f"damaged or truncated dataset: {err}", path) from None
+    except Exception as err:  # h5py's errors for damaged data are of many types  # noqa: BLE001
+        raise DatasetError(f"{where}: damaged or truncated: {_one_line(err)}", path) from None
     ds.validate(path)
     return ds
 
 
+def _read_array(f: h5py.File, name: str, checksums: bool, path: Path) -> np.ndarray:
+    """Read one stored array, refusing missing chunks and (version 2) a missing checksum."""
+    d = f[name]
+    if not isinstance(d, h5py.Dataset):
+        raise DatasetError(f"{name}: expected an array, found a group", path)
+    if d.size and checksums and not d.fletcher32:
+        raise DatasetError(f"{name}: stored without its checksum", path)
+    if d.size and d.chunks is not None:
+        expected = int(np.prod([-(-s // c) for s, c in zip(d.shape, d.chunks, strict=True)]))
+        stored = d.id.get_num_chunks()
+        if stored != expected:
+            raise DatasetError(f"{name}: {expected - stored} of {expected} chunks missing", path)
+    try:
+        return d[()]
+    except OSError as err:
+        text = _one_line(err)
+        if checksums and ("filter" in text.lower() or "checksum" in text.lower()):
+            damaged = f"{name}: checksum mismatch (the stored data is damaged)"
+            raise DatasetError(damaged, path) from None
+        raise
+
+
+def _as_text(value: object) -> Any:
+    """bytes -> str (UTF-8); anything else unchanged."""
+    if isinstance(value, bytes | np.bytes_):
+        return bytes(value).decode()
+    return value
+
+
+def _camera(value: object, path: Path) -> Camera | None:
+    """The ``intrinsics`` attribute (JSON object of Camera's fields) -> Camera."""
+    if value is None:
+        return None
+    d = _json_value(value, "intrinsics", path)
+    if not isinstance(d, dict) or set(d) != _CAMERA_FIELDS:
+        raise DatasetError(f"intrinsics: must be a JSON object of {sorted(_CAMERA_FIELDS)}", path)
+    numbers = [d[k] for k in ("fx", "fy", "cx", "cy")]
+    dist = d["distortion"]
+    ok = (
+        all(isinstance(x, int | float) and not isinstance(x, bool) for x in numbers)
+        and all(isinstance(d[k], int) and not isinstance(d[k], bool) for k in ("width", "height"))
+        and isinstance(d["model"], str)
+        and isinstance(dist, list)
+        and all(isinstance(x, int | float) and not isinstance(x, bool) for x in dist)
+    )
+    if not ok:
+        raise DatasetError(f"intrinsics: fields of the wrong type in {value!r:.120}", path)
+    return Camera(
+        *map(float, numbers), d["width"], d["height"], d["model"], tuple(map(float, dist))
+    )
+
+
+def _json_value(value: object, name: str, path: Path) -> Any:
+    if not isinstance(value, str):
+        raise DatasetError(f"{name}: must be a JSON string, found {_describe(value)}", path)
+    try:
+        return json.loads(value)
+    except ValueError as err:
+        raise DatasetError(f"{name}: not valid JSON ({err})", path) from None
+
+
+def _json_object(attrs: dict[str, Any], name: str, path: Path) -> dict[str, Any]:
+    d = _json_value(attrs.get(name, "{}"), name, path)
+    if not isinstance(d, dict):
+        raise DatasetError(f"{name}: must be a JSON object, found {type(d).__name__}", path)
+    return d
+
+
+def _float_attr(attrs: dict[str, Any], name: str, path: Path) -> np.ndarray | None:
+    """A numeric array attribute as float64 (None when absent)."""
+    value = attrs.get(name)
+    if value is None:
+        return None
+    a = np.asarray(value)
+    if a.dtype.kind not in "fiu":
+        raise DatasetError(f"{name}: must be numbers, found {_describe(value)}", path)
+    return a.astype(np.float64)
+
+
+def _background(attrs: dict[str, Any], path: Path) -> tuple[float, ...] | None:
+    a = _float_attr(attrs, "background", path)
+    return None if a is None else tuple(float(x) for x in np.atleast_1d(a).ravel())
+
+
 def _decode(a: np.ndarray) -> np.ndarray:
-    if a.dtype.kind == "O":
+    if a.dtype.kind in "OS":
         return np.array([s.decode() if isinstance(s, bytes) else s for s in a])
     return a
+
+
+def _one_line(err: BaseException) -> str:
+    """An exception as one short line (h5py's messages can span several)."""
+    text = " ".join(str(err).split()) or type(err).__name__
+    return text[:200]

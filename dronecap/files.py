@@ -1,12 +1,52 @@
-"""Small file helpers shared by every stage: atomic writes and content hashes."""
+"""Small file helpers shared by every stage: atomic writes, free-space checks, content hashes.
+
+Writers go through :func:`atomic_output`: the output appears under its final name only when it
+is complete, the temporary file is removed on every path (error, Ctrl-C, full disk), and a
+failure of the storage itself (full disk, read-only filesystem, a folder where a file should go,
+no permission) becomes an :class:`~dronecap.errors.OutputError`: one line naming the output.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
+import re
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
+
+from dronecap.errors import OutputError
+
+# errno values that mean "this output cannot be written here", not a bug
+STORAGE_ERRNOS = {
+    errno.ENOSPC: "no space left on the device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EFBIG: "file too large for the filesystem",
+    errno.EROFS: "read-only filesystem",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.EISDIR: "is a folder, expected a file",
+    errno.ENOTDIR: "a parent of the path is a file, not a folder",
+    errno.EEXIST: "a file is in the way of a folder",
+    errno.ENOTEMPTY: "is a folder that is not empty",
+    errno.ENAMETOOLONG: "file name too long",
+}
+
+
+def storage_error(err: BaseException) -> str | None:
+    """What ``err`` says about the storage (one of :data:`STORAGE_ERRNOS`), or None when it is
+    some other error. Understands h5py's OSErrors, which carry the errno only in their text."""
+    if not isinstance(err, OSError):
+        return None
+    code = err.errno
+    if code is None:
+        m = re.search(r"errno = (\d+)", str(err))
+        code = int(m.group(1)) if m else None
+        if code is None and "No space left" in str(err):
+            code = errno.ENOSPC
+    return STORAGE_ERRNOS.get(code) if code is not None else None
 
 
 @contextlib.contextmanager
@@ -14,25 +54,57 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
 
     An exception (or Ctrl-C) inside the block removes the temporary file, so a reader never sees
-    a half-written output under the final name. Works for files and for directories.
+    a half-written output under the final name, and an existing output is kept. Works for files
+    and for directories (an existing folder is replaced only by a folder).
+
+    Raises:
+        OutputError: the storage refused (full disk, read-only, a file or folder in the way).
     """
     final = Path(path)
-    final.parent.mkdir(parents=True, exist_ok=True)
     tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-    _remove(tmp)
     try:
-        yield tmp
-        if final.is_dir() and tmp.is_dir():
-            _remove(final)
-        os.replace(tmp, final)
-    finally:
+        final.parent.mkdir(parents=True, exist_ok=True)
         _remove(tmp)
+        yield tmp
+        if final.is_dir() and not final.is_symlink():
+            if not tmp.is_dir():
+                raise OutputError("is a folder, expected a file", final)
+            _remove(final)
+        elif final.exists() and tmp.is_dir():
+            raise OutputError("is a file, expected a folder", final)
+        os.replace(tmp, final)
+    except OSError as err:
+        reason = storage_error(err)
+        if reason is None:
+            raise
+        where = getattr(err, "filename", None)
+        shown = final if where in (None, str(tmp)) else Path(where)
+        raise OutputError(f"cannot write: {reason}", shown) from None
+    finally:
+        with contextlib.suppress(OSError):
+            _remove(tmp)
+
+
+def require_free_space(path: str | Path, nbytes: int) -> None:
+    """Raise :class:`OutputError` when the filesystem that will hold ``path`` has fewer than
+    ``nbytes`` bytes free (checked before large writes: HDF5 can crash on a full disk)."""
+    p = Path(path).absolute()
+    probe = p.parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise OutputError("a parent of the path is a file, not a folder", path)
+    free = shutil.disk_usage(probe).free
+    if free < nbytes:
+        raise OutputError(
+            f"cannot write: needs about {nbytes / 1e6:.1f} MB, {free / 1e6:.1f} MB free on the "
+            "device",
+            path,
+        )
 
 
 def _remove(p: Path) -> None:
     if p.is_dir() and not p.is_symlink():
-        import shutil
-
         shutil.rmtree(p, ignore_errors=True)
     else:
         with contextlib.suppress(FileNotFoundError):

@@ -139,11 +139,11 @@ def test_bad_files_fail_with_one_line(tmp_path: Path, case: str, message: str) -
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [
-        ("poses", np.tile(np.eye(4), (2, 1, 1)), "poses has shape [2, 4, 4], expected [3, 4, 4]"),
-        ("alpha", np.zeros((3, 4, 5), np.float32), "alpha must be uint8"),
-        ("split", np.array([0, 2, 5]), "split values must be -1, 0, 1 or 2, found [0, 2, 5]"),
+        ("poses", np.tile(np.eye(4), (2, 1, 1)), "poses: has shape [2, 4, 4], expected [3, 4, 4]"),
+        ("alpha", np.zeros((3, 4, 5), np.float32), "alpha: wrong type"),
+        ("split", np.array([0, 2, 5]), "split: values must be -1, 0, 1 or 2, found [0, 2, 5]"),
         ("aabb", np.array([[0.0, 0, 0], [1, -1, 1]]), "max > min"),
-        ("background", (1.0,), "background has 1 values for 3 channels"),
+        ("background", (1.0,), "background: has 1 values for 3 channels"),
     ],
 )
 def test_inconsistent_fields_are_refused_before_writing(
