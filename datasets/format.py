@@ -38,6 +38,7 @@ failure is a :class:`DatasetError`: one line naming the file, the field and the 
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import time
 from dataclasses import dataclass, field
@@ -286,50 +287,58 @@ def provenance(stage: str, params: dict[str, Any], inputs: dict[str, str]) -> di
 def write_dataset(path: str | Path, ds: Dataset) -> Path:
     """Validate ``ds`` and write it atomically to ``path`` (temporary name, then rename).
 
-    Refuses (one line, nothing written) when the target's filesystem has less free space than
-    the uncompressed arrays need: HDF5 may crash the process on a full disk.
+    The HDF5 file is built in memory and written with plain file I/O after a free-space check,
+    so a full disk is a one-line :class:`~dronecap.errors.OutputError` (HDF5 itself crashes the
+    process when its writes fail) and an existing ``path`` is kept.
     """
     path = Path(path)
     ds.validate(path)
-    arrays = [ds.images, ds.alpha, ds.poses, ds.near_far, *ds.shards.values(), *ds.extra.values()]
-    need = sum(int(np.asarray(a).nbytes) for a in arrays if a is not None) + (1 << 20)
-    require_free_space(path, need)
-    with atomic_output(path) as tmp, h5py.File(tmp, "w", libver=("v110", "latest")) as f:
-        n, h, w, c = ds.images.shape
-        _text_attr(f, "format", FORMAT)
-        f.attrs["format_version"] = np.int64(FORMAT_VERSION)
-        _text_attr(f, "kind", ds.kind)
-        _array(f, "images", ds.images, chunks=(1, h, w, c), lzf=True)
-        if ds.alpha is not None:
-            _array(f, "alpha", ds.alpha, chunks=(1, h, w), lzf=True)
-        arrays_by_name = {
-            "poses": (ds.poses, np.float64),
-            "source_index": (ds.source_index, np.int64),
-            "timestamps": (ds.timestamps, np.float64),
-            "split": (ds.split, np.int8),
-            "near_far": (ds.near_far, np.float64),
-        }
-        for name, (arr, dtype) in arrays_by_name.items():
-            if arr is not None:
-                _array(f, name, np.asarray(arr, dtype=dtype))
-        if ds.names is not None:
-            _array(f, "names", _fixed_strings(ds.names))
-        for name, arr in ds.shards.items():
-            _array(f, f"shards/{name}", np.asarray(arr, dtype=np.int16))
-        for name, arr in ds.extra.items():
-            arr = np.asarray(arr)
-            _array(f, f"extra/{name}", _fixed_strings(arr) if arr.dtype.kind == "U" else arr)
-        if ds.intrinsics is not None:
-            _text_attr(f, "intrinsics", json.dumps(dataclasses.asdict(ds.intrinsics)))
-        if ds.aabb is not None:
-            f.attrs["aabb"] = np.asarray(ds.aabb, dtype=np.float64)
-        if ds.normalization is not None:
-            f.attrs["normalization"] = np.asarray(ds.normalization, dtype=np.float64)
-        if ds.background is not None:
-            f.attrs["background"] = np.asarray(ds.background, dtype=np.float64)
-        _text_attr(f, "provenance", json.dumps(ds.provenance, allow_nan=False))
-        _text_attr(f, "stage_attrs", json.dumps(ds.attrs, allow_nan=False))
+    buf = io.BytesIO()
+    with h5py.File(buf, "w", libver=("v110", "latest")) as f:
+        _fill(f, ds)
+    data = buf.getbuffer()
+    require_free_space(path, len(data))
+    with atomic_output(path) as tmp, open(tmp, "wb") as out:
+        out.write(data)
     return path
+
+
+def _fill(f: h5py.File, ds: Dataset) -> None:
+    """Store every field of ``ds`` in the open file ``f`` (layout: module docstring)."""
+    n, h, w, c = ds.images.shape
+    _text_attr(f, "format", FORMAT)
+    f.attrs["format_version"] = np.int64(FORMAT_VERSION)
+    _text_attr(f, "kind", ds.kind)
+    _array(f, "images", ds.images, chunks=(1, h, w, c), lzf=True)
+    if ds.alpha is not None:
+        _array(f, "alpha", ds.alpha, chunks=(1, h, w), lzf=True)
+    arrays = {
+        "poses": (ds.poses, np.float64),
+        "source_index": (ds.source_index, np.int64),
+        "timestamps": (ds.timestamps, np.float64),
+        "split": (ds.split, np.int8),
+        "near_far": (ds.near_far, np.float64),
+    }
+    for name, (arr, dtype) in arrays.items():
+        if arr is not None:
+            _array(f, name, np.asarray(arr, dtype=dtype))
+    if ds.names is not None:
+        _array(f, "names", _fixed_strings(ds.names))
+    for name, arr in ds.shards.items():
+        _array(f, f"shards/{name}", np.asarray(arr, dtype=np.int16))
+    for name, arr in ds.extra.items():
+        arr = np.asarray(arr)
+        _array(f, f"extra/{name}", _fixed_strings(arr) if arr.dtype.kind == "U" else arr)
+    if ds.intrinsics is not None:
+        _text_attr(f, "intrinsics", json.dumps(dataclasses.asdict(ds.intrinsics)))
+    if ds.aabb is not None:
+        f.attrs["aabb"] = np.asarray(ds.aabb, dtype=np.float64)
+    if ds.normalization is not None:
+        f.attrs["normalization"] = np.asarray(ds.normalization, dtype=np.float64)
+    if ds.background is not None:
+        f.attrs["background"] = np.asarray(ds.background, dtype=np.float64)
+    _text_attr(f, "provenance", json.dumps(ds.provenance, allow_nan=False))
+    _text_attr(f, "stage_attrs", json.dumps(ds.attrs, allow_nan=False))
 
 
 def _array(

@@ -8,7 +8,9 @@ Each entry names a module in :mod:`dronecap.commands` that defines
 
 Command modules import only the standard library at module level, so ``dronecap --help`` stays
 fast; torch, pycolmap, open3d and Flower are imported inside ``run``. An :class:`InputError`
-raised anywhere becomes one line on stderr and exit code 1; Ctrl-C exits with 130.
+raised anywhere becomes one line on stderr and exit code 1, and so does an OSError of the
+storage (full disk, read-only, a folder in the way: ``dronecap.files.storage_error``); Ctrl-C
+exits with 130.
 """
 
 from __future__ import annotations
@@ -25,9 +27,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "split": ("split", "train/test split of a posed flight -> dataset.h5"),
     "shard": ("shard", "IID or viewpoint-sector shards, one file per drone -> shards/"),
     "import-blender": ("import_blender", "NeRF Synthetic 360 scene -> dataset.h5"),
+    "import-transforms": ("import_transforms", "instant-ngp/nerfstudio dataset -> dataset.h5"),
+    "import-colmap": ("import_colmap", "COLMAP sparse model + images -> dataset.h5"),
     "export-transforms": ("export_transforms", "dataset -> transforms.json + images"),
     "train": ("train", "train Tiny-DroNeRF on a dataset -> run dir"),
     "render": ("render", "render views (test poses or an orbit) of a trained run"),
+    "export-geometry": ("export_geometry", "mesh and point cloud (PLY) of a trained run"),
     "eval": ("eval", "re-evaluate a trained run on its test views (PSNR/SSIM)"),
     "cost": ("cost", "GAP9 memory/compute/latency/energy report for a configuration"),
     "federate": ("federate", "FedAvg across drones on Flower"),
@@ -101,6 +106,15 @@ def main(argv: list[str] | None = None) -> int:
         return int(module.run(args) or 0)
     except InputError as err:
         print(f"dronecap {argv[0]}: error: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:  # a storage failure outside atomic_output: one line, else a bug
+        from dronecap.files import storage_error
+
+        reason = storage_error(err)
+        if reason is None:
+            raise
+        where = f"{err.filename}: " if err.filename else ""
+        print(f"dronecap {argv[0]}: error: {where}{reason}", file=sys.stderr)
         return 1
     except ModuleNotFoundError as err:
         extra = OPTIONAL_MODULES.get((err.name or "").split(".")[0])
