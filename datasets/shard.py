@@ -134,20 +134,24 @@ def shard_dataset(
         seed: seed of the iid shuffle (recorded for both schemes).
 
     Raises:
-        InputError: unknown scheme, fewer train images than clients, no poses or split, or
-            cameras with no azimuth spread around the up axis.
+        InputError: unknown scheme, a negative seed, fewer train images than clients, no test
+            images, no poses or split, or cameras with no azimuth spread around the up axis.
     """
     in_path, out_dir = Path(in_path), Path(out_dir)
     if scheme not in SCHEMES:
         raise InputError(f"unknown shard scheme {scheme!r}: use one of {', '.join(SCHEMES)}")
     if clients < 1:
         raise InputError(f"--clients must be at least 1, got {clients}")
+    if seed < 0:
+        raise InputError(f"--seed must be >= 0, got {seed}")
     ds = open_dataset(in_path, kinds=("dataset",))
     if ds.poses is None:
         raise InputError("has no camera poses to shard by", in_path)
     if ds.split is None:
         raise InputError("has no train/test split (run `dronecap split` first)", in_path)
     train, test = ds.indices("train"), ds.indices("test")
+    if not len(test):
+        raise InputError("has no test frames: the drones' common test set would be empty", in_path)
     if len(train) < clients:
         raise InputError(
             f"{clients} clients need at least {clients} train images, found {len(train)}", in_path
@@ -155,6 +159,8 @@ def shard_dataset(
     centre = ds.aabb.mean(0) if ds.aabb is not None else lookat_point(ds.poses)
     up = scene_up(ds.poses[train])
     az = azimuths(ds.poses[train, :3, 3], centre, up)
+    if not (np.isfinite(az).all() and np.isfinite(centre).all()):
+        raise InputError("cameras give no finite azimuths around the scene centre", in_path)
     ranges = None
     if scheme == "iid":
         owner = iid_assignment(len(train), clients, seed)

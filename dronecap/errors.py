@@ -22,3 +22,26 @@ class InputError(Exception):
 class OutputError(InputError):
     """An output that cannot be written where the user asked: a full disk, a read-only
     filesystem, a folder where a file should go (or the reverse), no permission."""
+
+
+def check_option(
+    flag: str, value: float, minimum: float | None = None, maximum: float | None = None
+) -> None:
+    """Raise :class:`InputError` unless ``value`` of option ``flag`` is a finite number in
+    [``minimum``, ``maximum``] (either bound may be None: unbounded). Called where a command
+    reads its options, before any work starts."""
+    import math
+
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and minimum is not None and value < minimum:
+        ok = False
+    if ok and maximum is not None and value > maximum:
+        ok = False
+    if not ok:
+        bounds = []
+        if minimum is not None:
+            bounds.append(f">= {minimum:g}")
+        if maximum is not None:
+            bounds.append(f"<= {maximum:g}")
+        need = " and ".join(bounds) or "a finite number"
+        raise InputError(f"{flag} must be {need}, got {value!r}")

@@ -17,7 +17,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="sector",
         help="iid (seeded shuffle) or sector (contiguous viewpoint sectors; default)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the iid shuffle (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the iid shuffle, >= 0 (default 0)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -25,8 +25,13 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from dronecap import workspace
-    from dronecap.datasets.shard import shard_dataset
+    from dronecap.datasets.shard import SCHEMES, shard_dataset
+    from dronecap.errors import InputError, check_option
 
+    check_option("--clients", args.clients, minimum=1)
+    check_option("--seed", args.seed, minimum=0)
+    if args.scheme not in SCHEMES:
+        raise InputError(f"--scheme must be one of {', '.join(SCHEMES)}, got {args.scheme!r}")
     src = workspace.resolve(args.workdir, args.input, workspace.DATASET)
     out = workspace.resolve(args.workdir, args.output, workspace.SHARDS)
     shard_dataset(src, out, clients=args.clients, scheme=args.scheme, seed=args.seed)

@@ -21,7 +21,9 @@ def run(args: argparse.Namespace) -> int:
     from dronecap import workspace
     from dronecap.datasets.format import open_dataset
     from dronecap.datasets.split import split_dataset
+    from dronecap.errors import check_option
 
+    check_option("--every", args.every, minimum=2)
     src = workspace.resolve(args.workdir, args.input, workspace.POSED)
     out = workspace.resolve(args.workdir, args.output, workspace.DATASET)
     ds = open_dataset(split_dataset(src, out, every=args.every))
