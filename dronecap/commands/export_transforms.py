@@ -1,30 +1,50 @@
-"""`dronecap export-transforms`: a dataset -> nerfstudio/instant-ngp transforms.json + images."""
+"""`dronecap export-transforms`: a dataset -> nerfstudio / instant-ngp / COLMAP files + images."""
 
 from __future__ import annotations
 
 import argparse
 
-HELP = "dataset -> nerfstudio/instant-ngp transforms.json + PNG images"
+HELP = "dataset -> nerfstudio/instant-ngp transforms.json, PNG images, coloured PLY, COLMAP model"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of the command."""
     p.add_argument("input", nargs="?", help="dataset to export (default: WORKDIR/dataset.h5)")
     p.add_argument("-o", "--output", help="folder to write (default: WORKDIR/transforms)")
+    p.add_argument(
+        "--sparse-model",
+        help="the COLMAP model the poses came from, for the coloured sparse cloud and the "
+        "COLMAP observations (default: WORKDIR/sfm/model when it matches the dataset)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """Export and say where."""
-    import json
+    import sys
 
     from dronecap import workspace
     from dronecap.datasets.export import export_transforms
+    from dronecap.errors import InputError
 
     src = workspace.resolve(args.workdir, args.input, workspace.DATASET)
     out = workspace.resolve(args.workdir, args.output, "transforms")
-    export_transforms(src, out)
-    meta = json.loads((out / "transforms.json").read_text())
-    print(
-        f"wrote {out / 'transforms.json'}: {len(meta['frames'])} frames, images in {out / 'images'}"
-    )
+    model = args.sparse_model
+    default_model = workspace.resolve(args.workdir, None, workspace.SFM_DIR) / "model"
+    found = default_model if default_model.is_dir() else None
+    try:
+        res = export_transforms(src, out, model or found)
+    except InputError as err:
+        if model is not None or not default_model.is_dir() or "COLMAP model" not in str(err):
+            raise
+        print(f"note: {default_model} not used ({err}); exporting without sparse points",
+              file=sys.stderr)  # fmt: skip
+        res = export_transforms(src, out, None)
+    splits = ", ".join(f"{n} {s}" for s, n in res.split_counts.items()) or "no split"
+    print(f"wrote {out / 'transforms.json'}: {res.frames} frames ({splits}), images in {out}")
+    if res.split_files:
+        print(f"instant-ngp: {', '.join(res.split_files)} (give it transforms_train.json)")
+    pts = f"{res.points} coloured points" if res.points else "no sparse points"
+    print(f"COLMAP model (binary, text) under {out}/colmap; {pts}")
+    for note in res.notes:
+        print(f"note: {note}")
     return 0

@@ -1,0 +1,185 @@
+"""What the dataset importers share: reading and resizing posed images, and the scene bounds.
+
+Both ``import-transforms`` and ``import-colmap`` end here:
+
+- images: read with OpenCV (8- or 16-bit, gray, RGB or RGBA), area-resized to the stored width
+  (height keeps the aspect ratio; colour premultiplied by alpha while resizing), stored RGB or
+  BT.601 gray (:mod:`dronecap.datasets.blender`'s image helpers). ``color="auto"`` stores gray
+  when every image is gray (single channel or R = G = B), so gray datasets round-trip exactly;
+  alpha is kept (with a white background) when some pixel is not opaque;
+- the camera is scaled exactly through the resize (:meth:`Camera.scaled_to`: fx, cx by
+  new width / old width, fy, cy by new height / old height; distortion unchanged);
+- bounds as for a captured flight (:mod:`dronecap.sfm.normalize`): the poses are oriented,
+  centred and scaled into [-1, 1]^3 from the sparse points and camera centres, the AABB is the
+  robust box, near/far come from the points each view observes — unless the source declares its
+  own scene box (``keep_frame``), which is then kept with its poses unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dronecap.datasets.format import Intrinsics
+from dronecap.errors import InputError
+
+COLORS = ("auto", "rgb", "gray")
+BACKGROUND = 1.0  # white, as import-blender
+
+
+@dataclass
+class Images:
+    """Images read for a dataset."""
+
+    images: np.ndarray  # uint8 [N, H, W, C]
+    alpha: np.ndarray | None  # uint8 [N, H, W] or None when every pixel is opaque
+    source_size: tuple[int, int]  # (width, height) of the files
+
+
+def check_options(size: int, color: str) -> None:
+    """Range-check ``--size`` and ``--color`` before any work."""
+    if size < 8:
+        raise InputError(f"--size must be at least 8 pixels, got {size}")
+    if color not in COLORS:
+        raise InputError(f"unknown colour {color!r}: use one of {', '.join(COLORS)}")
+
+
+def read_images(paths: list[Path], width: int, color: str, progress: bool = True) -> Images:
+    """Read, resize and convert ``paths`` (see the module docstring).
+
+    Raises:
+        InputError: a missing or unreadable image, or images of different sizes.
+    """
+    from dronecap.datasets.blender import _read_rgba, _resize, _to_color
+    from dronecap.progress import progress_bar
+
+    rgbs, alphas, gray = [], [], True
+    size = None
+    for path in progress_bar(paths, desc="import", unit="img", disable=not progress):
+        rgba = _read_rgba(path)
+        if size is None:
+            size = rgba.shape[:2]
+        elif rgba.shape[:2] != size:
+            raise InputError(
+                f"image is {rgba.shape[1]}x{rgba.shape[0]}, the first is {size[1]}x{size[0]}",
+                path,
+            )
+        gray &= bool((rgba[:, :, 0:2] == rgba[:, :, 1:3]).all())
+        rgb, a = _resize(rgba, width)
+        rgbs.append(rgb)
+        alphas.append(a)
+    mode = ("gray" if gray else "rgb") if color == "auto" else color
+    images = np.stack([_to_color(rgb, mode) for rgb in rgbs])
+    alpha = np.stack(alphas)
+    return Images(images, None if (alpha == 255).all() else alpha, (size[1], size[0]))
+
+
+def resized_camera(k: Intrinsics, images: np.ndarray) -> Intrinsics:
+    """``k`` (for the source files) scaled exactly to the stored images' size."""
+    h, w = images.shape[1:3]
+    return k if (k.width, k.height) == (w, h) else k.scaled_to(w, h)
+
+
+def visible_points(c2w: np.ndarray, k: Intrinsics, points: np.ndarray) -> list[np.ndarray]:
+    """Row numbers of ``points`` [P, 3] in front of each camera and inside its image — the
+    stand-in for "observed" when a source has points but no observations."""
+    out = []
+    for m in c2w:
+        cam = (points - m[:3, 3]) @ m[:3, :3]
+        front = cam[:, 2] > 1e-9
+        idx = np.flatnonzero(front)
+        if len(idx):
+            uv = k.project(cam[idx])
+            inside = (uv >= 0).all(1) & (uv[:, 0] < k.width) & (uv[:, 1] < k.height)
+            idx = idx[inside]
+        out.append(idx)
+    return out
+
+
+@dataclass
+class Bounds:
+    """Poses in the dataset's scene frame and its bounds."""
+
+    poses: np.ndarray  # float64 [N, 4, 4] camera-to-world, OpenCV axes, scene frame
+    points: np.ndarray  # float64 [P, 3] sparse points in the scene frame
+    inliers: np.ndarray  # bool [P]: points kept by the outlier removal
+    aabb: np.ndarray  # float64 [2, 3]
+    near_far: np.ndarray  # float64 [N, 2]
+    normalization: np.ndarray  # float64 [4, 4]: x_scene = M @ x_source
+    bounds_from: str
+
+
+def scene_bounds(
+    c2w: np.ndarray,
+    points: np.ndarray,
+    seen: list[np.ndarray],
+    keep_aabb: np.ndarray | None = None,
+) -> Bounds:
+    """Normalise and bound a posed scene as SfM does for a captured flight.
+
+    Args:
+        c2w: float64 [N, 4, 4] camera-to-world, OpenCV axes, source frame.
+        points: float64 [P, 3] sparse points, source frame (may be empty).
+        seen: for each view, the row numbers of the points it observes.
+        keep_aabb: a scene box declared by the source: poses stay in the source frame and
+            this is the AABB.
+
+    Raises:
+        InputError: cameras whose up vectors cancel out (no up direction to orient by).
+    """
+    from dronecap.sfm.normalize import (
+        NormalizeSettings,
+        apply_to_points,
+        apply_to_poses,
+        near_far,
+        normalize_scene,
+        statistical_inliers,
+    )
+
+    if keep_aabb is not None:
+        a = np.asarray(keep_aabb, float)
+        st = NormalizeSettings()
+        inl = statistical_inliers(points, st.nb_neighbors, st.std_ratio)
+        nf = near_far(c2w, a, [points[s] for s in seen])
+        return Bounds(c2w, points, inl, a, nf, np.eye(4), "the source's scene box")
+    try:
+        norm = normalize_scene(c2w, points)
+    except ValueError as err:
+        raise InputError(f"cannot orient the scene: {err}") from None
+    poses = apply_to_poses(norm.matrix, c2w)
+    pts = apply_to_points(norm.matrix, points)
+    nf = near_far(poses, norm.aabb, [pts[s] for s in seen])
+    how = "sparse points and cameras" if len(points) else "camera centres (no sparse points)"
+    return Bounds(poses, pts, norm.inliers, norm.aabb, nf, norm.matrix, how)
+
+
+def points_extra(points: np.ndarray, colors: np.ndarray | None) -> dict[str, np.ndarray]:
+    """Dataset.extra entries of sparse points (see :mod:`dronecap.datasets.export_colmap`)."""
+    from dronecap.datasets.export_colmap import POINTS_RGB, POINTS_XYZ
+
+    if not len(points):
+        return {}
+    rgb = np.zeros((len(points), 3), np.uint8) if colors is None else colors
+    return {POINTS_XYZ: np.asarray(points, np.float64), POINTS_RGB: np.asarray(rgb, np.uint8)}
+
+
+def white_background(channels: int, alpha: np.ndarray | None) -> tuple[float, ...] | None:
+    """The dataset background: white when there is alpha, none otherwise."""
+    return None if alpha is None else (BACKGROUND,) * channels
+
+
+def describe(path: Path) -> str:
+    """Two lines on an imported dataset: views, size, split, camera, bounds."""
+    from dronecap.datasets.format import open_dataset
+
+    ds = open_dataset(path)
+    counts = ", ".join(f"{len(ds.indices(s))} {s}" for s in ("train", "val", "test"))
+    k = ds.intrinsics
+    lo, hi = ds.aabb
+    return (
+        f"wrote {path}: {ds.n} views {ds.hw[1]}x{ds.hw[0]}x{ds.channels} ({counts}), camera "
+        f"{k.model} fx={k.fx:.2f} fy={k.fy:.2f}\n"
+        f"aabb {lo.round(3).tolist()} .. {hi.round(3).tolist()} ({ds.attrs['bounds_from']})"
+    )

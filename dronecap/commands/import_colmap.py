@@ -1,0 +1,34 @@
+"""`dronecap import-colmap`: a COLMAP sparse model + its images folder -> dataset.h5."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "COLMAP sparse model (sparse/0) + images folder -> dataset.h5"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of the command."""
+    p.add_argument("model", help="COLMAP model folder (cameras/images/points3D .bin or .txt)")
+    p.add_argument("images", help="folder the model's image names are relative to")
+    p.add_argument("-o", "--output", help="dataset to write (default: WORKDIR/dataset.h5)")
+    p.add_argument("--size", type=int, default=160, help="stored image width in pixels")
+    p.add_argument(
+        "--color",
+        choices=("auto", "rgb", "gray"),
+        default="auto",
+        help="stored colour; auto: gray when every image is gray",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Import and print what was stored."""
+    from dronecap import workspace
+    from dronecap.datasets.import_colmap import import_colmap
+    from dronecap.datasets.import_scene import check_options, describe
+
+    check_options(args.size, args.color)
+    out = workspace.resolve(args.workdir, args.output, workspace.DATASET)
+    path = import_colmap(args.model, args.images, out, size=args.size, color=args.color)
+    print(describe(path))
+    return 0
