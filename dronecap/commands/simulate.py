@@ -35,8 +35,13 @@ DEFECT_FLAGS = {
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of the command."""
+    import re
+
     from dronecap.simulator.sensor import DEFECT_DEFAULTS
 
+    # `--distortion -0.1,0.02`: argparse takes only plain negative numbers ("-0.1") for values;
+    # let comma-separated lists starting with a minus sign be values too.
+    p._negative_number_matcher = re.compile(r"^-\d*\.?\d+(e-?\d+)?(,-?\d*\.?\d+(e-?\d+)?)*$")
     p.add_argument("--scene", default="corridor", choices=SCENES, help="scene")
     p.add_argument(
         "-o",

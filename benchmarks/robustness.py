@@ -1,0 +1,306 @@
+"""Robustness of the default pipeline to each camera/link degradation of a real nano-drone.
+
+A simulated corridor flight (same route, seed and scene for every case) is rendered clean, with
+each degradation of ``dronecap simulate`` alone at its default level, and with all of them
+(``--sensor aideck``: 324x244 HM01B0 over Wi-Fi), then run through the default commands
+``simulate -> ingest -> sfm -> split -> train`` (one thread each). Per case: frames delivered and
+kept, % registered, ATE (% of the trajectory extent), rotation error, focal-length error against
+the true lens, test PSNR/SSIM on the flight's own test views, and PSNR/SSIM against noise-free
+renders of the same test poses (a reference flight rendered without noise or exposure drift).
+For the distortion case the same dataset is also trained with the distortion stripped from its
+camera ("distortion ignored": pinhole rays).
+
+    nice .venv/bin/python benchmarks/robustness.py [--frames 240] [--steps 1500]
+        [--cases clean,distortion,...] [--work /tmp/dronecap-robustness]
+
+``--snapshot`` runs everything on the last commit (``git archive HEAD`` unpacked under the work
+folder), not on the shared work tree where other engineers' edits are in progress. Each case's
+work folder is kept; a case whose results file exists is not re-run (delete its
+folder to redo it). Writes benchmarks/results/robustness.md and robustness.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).parent / "results"
+PY = [sys.executable, "-m", "dronecap.cli"]
+# case -> (simulate flags, kind): "geometric"/"timing" judged on their own test views,
+# "photometric" also against noise-free renders of the test poses
+CASES: dict[str, tuple[list[str], str]] = {
+    "clean": ([], "reference"),
+    "distortion": (["--distortion"], "geometric"),
+    "principal-point": (["--principal-offset"], "geometric"),
+    "blur": (["--blur"], "geometric"),
+    "dropped": (["--drop"], "timing"),
+    "duplicated": (["--duplicate"], "timing"),
+    "torn": (["--torn"], "timing"),
+    "noise": (["--noise"], "photometric"),
+    "jpeg": (["--jpeg"], "photometric"),
+    "vignetting": (["--vignetting"], "photometric"),
+    "exposure": (["--exposure-drift"], "photometric"),
+    "aideck (all)": (["--sensor", "aideck"], "all"),
+}
+NOISE_FREE = ["--noise", "0,0", "--exposure-drift", "0"]
+
+
+def snapshot(work: Path) -> None:
+    """Re-run this script on the committed HEAD: unpack it, lay the stage folders out as the
+    dronecap.* packages (pyproject's package-dir) and exec with that tree first on sys.path."""
+    if os.environ.get("DRONECAP_SNAPSHOT"):
+        return
+    repo = Path(__file__).resolve().parents[1]
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, check=True,
+                            capture_output=True, text=True).stdout.strip()  # fmt: skip
+    root = work / f"snapshot-{commit}"
+    if not root.exists():
+        tmp = work / f".snapshot-{os.getpid()}"
+        tmp.mkdir(parents=True)
+        tar = subprocess.run(["git", "archive", "HEAD"], cwd=repo, check=True, capture_output=True)
+        subprocess.run(["tar", "-x", "-C", str(tmp)], input=tar.stdout, check=True)
+        pkg = tmp / "pkg" / "dronecap"
+        pkg.parent.mkdir()
+        (tmp / "dronecap").rename(pkg)
+        for sub in ("capture", "sfm", "datasets", "nerf", "camera", "simulator", "federated",
+                    "gap9"):  # fmt: skip
+            if (tmp / sub).exists():
+                (tmp / sub).rename(pkg / sub)
+        (pkg / "pipelines.yaml").unlink(missing_ok=True)
+        (tmp / "pipelines.yaml").rename(pkg / "pipelines.yaml")
+        tmp.rename(root)
+    env = dict(os.environ, DRONECAP_SNAPSHOT=commit, PYTHONPATH=str(root / "pkg"),
+               DRONECAP_RESULTS=str(RESULTS))  # fmt: skip
+    print(f"running on a snapshot of commit {commit}: {root}", flush=True)
+    os.execve(sys.executable, [sys.executable, str(root / "benchmarks" / "robustness.py"),
+                               *sys.argv[1:]], env)  # fmt: skip
+
+
+def sh(args: list[str], log: Path) -> str:
+    """Run a dronecap command single-threaded; its output goes to ``log``; returns stdout."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", DRONECAP_PROGRESS="off")
+    with open(log, "a") as fh:
+        fh.write(f"$ dronecap {' '.join(args)}\n")
+        fh.flush()
+        t0 = time.perf_counter()
+        p = subprocess.run(PY + args, env=env, capture_output=True, text=True)
+        fh.write(p.stdout + p.stderr + f"[exit {p.returncode}, {time.perf_counter() - t0:.0f} s]\n")
+    if p.returncode != 0:
+        last = (p.stderr.strip() or p.stdout.strip() or "no output").splitlines()[-1]
+        raise RuntimeError(f"dronecap {args[0]} failed: {last[:300]}")
+    return p.stdout
+
+
+def eval_line(out: str) -> tuple[float, float]:
+    """(PSNR, SSIM) from `dronecap eval`'s printed line."""
+    m = re.search(r"PSNR (-?[\d.]+) dB, SSIM (-?[\d.]+)", out)
+    if not m:
+        raise RuntimeError(f"no PSNR in eval output: {out[-200:]}")
+    return float(m.group(1)), float(m.group(2))
+
+
+def reference_frames(work: Path, frames: int) -> np.ndarray:
+    """Noise-free renders of every source frame: uint8 [N, 160, 160] (rendered once)."""
+    from dronecap.simulator.simulate import render_flight
+
+    path = work / "reference.npy"
+    if not path.exists():
+        import dataclasses as dc
+
+        from dronecap.simulator.simulate import capture_preset
+
+        clean = capture_preset("clean")
+        sensor = dc.replace(clean.sensor, read_noise=0.0, shot_noise=0.0, exposure_drift=0.0)
+        it, _ = render_flight("corridor", frames, 0, dc.replace(clean, sensor=sensor))
+        np.save(path, np.stack(list(it)))
+    return np.load(path)
+
+
+def with_images(src: Path, dst: Path, reference: np.ndarray, gt: dict) -> None:
+    """``src`` dataset with each frame's image replaced by the noise-free render of the source
+    frame it shows (geometry unchanged)."""
+    from dronecap.datasets import open_dataset, write_dataset
+
+    ds = open_dataset(src)
+    recs = [gt["frames"][int(i)] for i in ds.source_index]
+    shows = [r.get("shows", r["source_frame"]) for r in recs]
+    images = reference[np.asarray(shows)][..., None]
+    write_dataset(dst, dataclasses.replace(ds, images=images))
+
+
+def pinhole_copy(src: Path, dst: Path) -> None:
+    """``src`` dataset with the distortion stripped from its camera."""
+    from dronecap.datasets import open_dataset, write_dataset
+
+    ds = open_dataset(src)
+    write_dataset(dst, dataclasses.replace(ds, intrinsics=ds.intrinsics.pinhole()))
+
+
+def true_focal(gt: dict) -> float:
+    """fx of the true lens in the 160x160 frames ingest makes (centre crop, then resize)."""
+    k = gt["intrinsics"]
+    return float(k["fx"]) * 160 / min(int(k["width"]), int(k["height"]))
+
+
+def run_case(name: str, work: Path, frames: int, steps: int) -> dict:
+    """Simulate, ingest, sfm, split, train (and evaluate) one case; returns its record."""
+    flags, kind = CASES[name]
+    d = work / re.sub(r"\W+", "_", name).strip("_")
+    done = d / "result.json"
+    if done.exists():
+        return json.loads(done.read_text())
+    d.mkdir(parents=True, exist_ok=True)
+    log = d / "log.txt"
+    rec: dict = {"case": name, "kind": kind, "flags": " ".join(flags)}
+    t0 = time.perf_counter()
+    try:
+        sim = ["simulate", "--frames", str(frames), "--seed", "0", *flags]
+        sh([*sim, "-o", str(d / "flight.mp4")], log)
+        gt = json.loads((d / "flight.json").read_text())
+        rec["delivered"] = gt["stream"]["delivered"]
+        sh(["ingest", str(d / "flight.mp4"), "--workdir", str(d)], log)
+        from dronecap.datasets import open_dataset
+
+        rec["kept"] = open_dataset(d / "frames.h5").n
+        sh(["sfm", "--gt", str(d / "flight.json"), "--threads", "1", "--workdir", str(d)], log)
+        rep = json.loads((d / "sfm" / "report.json").read_text())
+        acc = rep.get("accuracy", {})
+        rec.update(
+            registered=rep["registered"],
+            registered_pct=100 * rep["registration_rate"],
+            ate_pct=acc.get("ate_percent"),
+            rot_median_deg=acc.get("rot_median_deg"),
+        )
+        posed = open_dataset(d / "posed.h5")
+        rec["focal_err_pct"] = 100 * (posed.intrinsics.fx / true_focal(gt) - 1)
+        rec["camera"] = f"{posed.intrinsics.model} {list(np.round(posed.intrinsics.distortion, 3))}"
+        sh(["split", "--workdir", str(d)], log)
+        train = ["train", "--threads", "1", "--steps", str(steps), "--no-progress"]
+        sh([*train, "--workdir", str(d)], log)
+        m = json.loads((d / "runs" / "train" / "metrics.json").read_text())["test"]
+        rec.update(psnr=m["psnr"], ssim=m["ssim"], test_views=m["views"])
+        if kind in ("photometric", "reference", "all"):
+            ref = reference_frames(work, frames)
+            if kind != "all":  # the 324x244 lens needs its own noise-free renders: not done
+                with_images(d / "dataset.h5", d / "dataset_ref.h5", ref, gt)
+                out = sh(["eval", str(d / "runs" / "train"), "--dataset", str(d / "dataset_ref.h5"),
+                          "--threads", "1", "--no-progress"], log)  # fmt: skip
+                rec["psnr_ref"], rec["ssim_ref"] = eval_line(out)
+        if name == "distortion":
+            pinhole_copy(d / "dataset.h5", d / "dataset_pinhole.h5")
+            sh([*train, "--dataset", str(d / "dataset_pinhole.h5"), "--out",
+                str(d / "runs" / "pinhole")], log)  # fmt: skip
+            m = json.loads((d / "runs" / "pinhole" / "metrics.json").read_text())["test"]
+            rec["psnr_ignored"], rec["ssim_ignored"] = m["psnr"], m["ssim"]
+    except Exception as err:  # noqa: BLE001 - a failed case is a result, recorded as such
+        rec["error"] = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
+    rec["seconds"] = time.perf_counter() - t0
+    done.write_text(json.dumps(rec, indent=1))
+    return rec
+
+
+def fmt(x: object, spec: str) -> str:
+    """Table cell: formatted number or a dash."""
+    return "–" if x is None else format(x, spec)
+
+
+def table(recs: list[dict], args: argparse.Namespace, load: str) -> str:
+    """The results page (markdown)."""
+    clean = next((r for r in recs if r["case"] == "clean" and "psnr" in r), None)
+    lines = [
+        "# Robustness of the default pipeline to nano-drone camera and link defects",
+        "",
+        f"Command: `nice .venv/bin/python benchmarks/robustness.py --frames {args.frames} "
+        f"--steps {args.steps}` (corridor, seed 0, default `ingest`, `sfm --gt --threads 1`, "
+        f"`split`, `train --threads 1 --steps {args.steps}`). Code: commit "
+        f"{os.environ.get('DRONECAP_SNAPSHOT', 'work tree')}. Load: {load}.",
+        "",
+        "Δ PSNR = test PSNR minus the clean flight's (own test views). PSNR vs ref: the same run "
+        "evaluated against noise-free, drift-free renders of the test poses (photometric cases).",
+        "",
+        "| case | flags | delivered / kept | registered | ATE | rot. median | focal err. "
+        "| test PSNR / SSIM | Δ PSNR | PSNR / SSIM vs ref | note |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in recs:
+        delta = r["psnr"] - clean["psnr"] if clean and "psnr" in r else None
+        note = r.get("error", "")
+        if "psnr_ignored" in r:
+            note = (f"distortion ignored: {r['psnr_ignored']:.2f} dB / {r['ssim_ignored']:.3f}"
+                    f" ({r['psnr_ignored'] - r['psnr']:+.2f} dB)")  # fmt: skip
+        ref = f"{r['psnr_ref']:.2f} / {r['ssim_ref']:.3f}" if "psnr_ref" in r else "–"
+        lines.append(
+            f"| {r['case']} | `{r['flags']}` | {r.get('delivered', '–')} / {r.get('kept', '–')} "
+            f"| {fmt(r.get('registered_pct'), '.1f')} % | {fmt(r.get('ate_pct'), '.2f')} % "
+            f"| {fmt(r.get('rot_median_deg'), '.2f')}° | {fmt(r.get('focal_err_pct'), '+.2f')} % "
+            f"| {fmt(r.get('psnr'), '.2f')} / {fmt(r.get('ssim'), '.3f')} "
+            f"| {fmt(delta, '+.2f')} | {ref} | {note} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def plot(recs: list[dict], path: Path) -> None:
+    """Bar chart: registered % and test PSNR per case."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [r["case"] for r in recs]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    a.bar(names, [r.get("registered_pct") or 0 for r in recs], color="tab:blue")
+    a.axhline(95, color="k", ls="--", lw=1)
+    a.set_ylabel("registered %")
+    b.bar(names, [r.get("psnr") or 0 for r in recs], color="tab:green", label="own test views")
+    b.scatter(names, [r.get("psnr_ref", np.nan) for r in recs], color="k", zorder=3,
+              label="vs noise-free renders")  # fmt: skip
+    b.set_ylabel("test PSNR (dB)")
+    b.legend(fontsize=8)
+    for ax in (a, b):
+        ax.tick_params(axis="x", rotation=60, labelsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=240)
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--cases", default=",".join(CASES), help="comma-separated case names")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/dronecap-robustness"))
+    ap.add_argument("--results", default="robustness", help="results file stem")
+    ap.add_argument("--snapshot", action="store_true", help="run on the committed HEAD")
+    args = ap.parse_args()
+    if args.snapshot:
+        args.work.mkdir(parents=True, exist_ok=True)
+        snapshot(args.work)
+    names = [c.strip() for c in args.cases.split(",")]
+    if unknown := [c for c in names if c not in CASES]:
+        raise SystemExit(f"unknown cases {unknown}; known: {list(CASES)}")
+    args.work.mkdir(parents=True, exist_ok=True)
+    recs = []
+    for name in names:
+        print(f"== {name}", flush=True)
+        recs.append(run_case(name, args.work, args.frames, args.steps))
+        print(json.dumps(recs[-1]), flush=True)
+    load = open("/proc/loadavg").read().split()[:3]
+    text = table(recs, args, f"load average {' '.join(load)} at the end (2 cores)")
+    print(text)
+    results = Path(os.environ.get("DRONECAP_RESULTS", RESULTS))
+    results.mkdir(exist_ok=True)
+    (results / f"{args.results}.md").write_text(text)
+    plot(recs, results / f"{args.results}.png")
+    print(f"wrote {results / args.results}.md/.png")
+
+
+if __name__ == "__main__":
+    main()
