@@ -25,6 +25,7 @@ output, byte for byte; the same seed gives the same capture.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -230,9 +231,17 @@ def simulate(
 
     if fmt not in formats.FORMATS:
         raise InputError(f"unknown format {fmt!r}, expected one of {', '.join(formats.FORMATS)}")
-    sim = SimulatedFlight(scene_name, frames, seed, capture or Capture(sensor_name="clean"))
+    capture = capture or Capture(sensor_name="clean")
+    quality = capture.sensor.jpeg_quality
+    if fmt == "pulp-dronet":  # the JPEG file is the compression: encode once, at the file
+        quality = quality or formats.PULP_JPEG_QUALITY
+        capture = dataclasses.replace(
+            capture, sensor=dataclasses.replace(capture.sensor, jpeg_quality=0)
+        )
+    sim = SimulatedFlight(scene_name, frames, seed, capture)
     output = Path(output)
     doc = sim.document(fmt)
+    doc["sensor"]["jpeg_quality"] = quality  # type: ignore[index]
     bar = progress_bar(
         sim.images(),
         total=len(sim.delivered),
@@ -254,7 +263,6 @@ def simulate(
         "noise": noise.__dict__,
         "final_yaw_error_deg": float(np.degrees(states["yaw_error"][-1])),
     }
-    quality = sim.capture.sensor.jpeg_quality or formats.PULP_JPEG_QUALITY
     return formats.write_folder(output, fmt, bar, doc, states, quality)
 
 

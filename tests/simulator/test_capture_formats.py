@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from dronecap.cli import main
+from dronecap.simulator.sensor import Sensor, jpeg_roundtrip
 from dronecap.simulator.simulate import Capture, SimulatedFlight
 from dronecap.simulator.stream import LinkDefects, plan_stream, tear
 from dronecap.simulator.telemetry import (
@@ -201,3 +202,15 @@ def test_bad_values_one_line_nothing_written(tmp_path, capsys, args):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "error" in err[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_pulp_dronet_jpeg_is_encoded_once_at_the_file(tmp_path):
+    out = tmp_path / "pd"
+    args = ["simulate", "--frames", "4", "--format", "pulp-dronet", "--jpeg", "60"]
+    assert main([*args, "--noise", "3,0.3", "-o", str(out)]) == 0
+    gt = json.loads((out / "flight.json").read_text())
+    assert gt["sensor"]["jpeg_quality"] == 60
+    raw = Capture(Sensor(read_noise=3.0, shot_noise=0.3))
+    frame = SimulatedFlight("corridor", 4, 0, raw).render_source(2)
+    got = cv2.imread(str(out / gt["frames"][2]["file"]), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(got, jpeg_roundtrip(frame, 60))
