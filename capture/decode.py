@@ -106,12 +106,17 @@ class VideoSource:
 
 
 class ImageFolderSource:
-    """Read the images of a folder in natural order, timed at ``fps``."""
+    """Read the images of a folder in natural order, timed at ``fps``.
 
-    def __init__(self, path: Path, fps: float) -> None:
+    A file that does not decode is an :class:`InputError` naming it, unless ``skip_unreadable``
+    (then it comes back with ``image=None``).
+    """
+
+    def __init__(self, path: Path, fps: float, skip_unreadable: bool = False) -> None:
         import cv2
 
         self.path = path
+        self.skip_unreadable = skip_unreadable
         self.files = sorted(
             (p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
             key=lambda p: natural_key(p.name),
@@ -136,12 +141,18 @@ class ImageFolderSource:
         )
 
     def frames(self) -> Iterator[DecodedFrame]:
-        """Every image in natural order; unreadable ones come back with ``image=None``."""
+        """Every image in natural order (unreadable ones as ``image=None`` when skipped)."""
         import cv2
 
         size = (self.info.height, self.info.width)
         for i, f in enumerate(self.files):
             image = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+            if image is None and not self.skip_unreadable:
+                raise InputError(
+                    f"image {i + 1} of {len(self.files)} does not decode (damaged or not an "
+                    "image); --skip-unreadable drops such frames",
+                    f,
+                )
             if image is not None and tuple(image.shape[:2]) != size:
                 raise InputError(
                     f"is {image.shape[1]}x{image.shape[0]} but the folder's first image is "
@@ -151,13 +162,15 @@ class ImageFolderSource:
             yield DecodedFrame(i, i / self.info.fps, image, f.name)
 
 
-def open_source(path: str | Path, fps: float = 30.0) -> VideoSource | ImageFolderSource:
+def open_source(
+    path: str | Path, fps: float = 30.0, skip_unreadable: bool = False
+) -> VideoSource | ImageFolderSource:
     """Open a video file or an image folder; raise :class:`InputError` when it is neither."""
     path = Path(path)
     if not path.exists():
         raise InputError("no such file or folder", path)
     if path.is_dir():
-        return ImageFolderSource(path, fps)
+        return ImageFolderSource(path, fps, skip_unreadable)
     if path.stat().st_size == 0:
         raise InputError("is an empty file, not a video", path)
     return VideoSource(path)

@@ -18,14 +18,19 @@ import numpy as np
 from dronecap.camera import Camera
 from dronecap.camera.files import load_camera
 from dronecap.capture.decode import DecodedFrame, SourceInfo, open_source, prefetch, progress_stream
+from dronecap.capture.defects import UpsideDownCheck, demosaic, detect_bayer, torn_row
 from dronecap.capture.framing import LUMA_WEIGHTS, Framing, make_framing
-from dronecap.capture.quality import SCORE_NAMES, MotionTracker, frame_scores
+from dronecap.capture.quality import SCORE_NAMES, frame_diff, frame_scores
 from dronecap.capture.selection import (
     REASONS,
+    TORN,
+    UPSIDE_DOWN,
     Selection,
     SelectionParams,
     select_frames,
 )
+from dronecap.capture.telemetry import Telemetry, find_capture, layout_for, match, parse_columns
+from dronecap.capture.tracks import PAIR_NAMES, WINDOW, FeatureTracker
 from dronecap.errors import InputError
 
 MIN_KEPT = 2  # fewer kept frames leave nothing to reconstruct
@@ -40,6 +45,11 @@ class IngestParams:
     fps: float = 30.0  # frame rate assumed for an image folder
     intrinsics: str | None = None  # "fx,fy,cx,cy" or a calibration file (camera.files); None
     allow_truncated: bool = False  # keep what decodes from a truncated video
+    skip_unreadable: bool = False  # drop image files that do not decode instead of failing
+    telemetry: str | None = None  # telemetry CSV; None: the capture folder's own, if any
+    columns: str | None = None  # "--columns" mapping of canonical names to CSV columns
+    camera_offset: tuple[float, float, float] | None = None  # camera in body axes (m)
+    bayer: str = "auto"  # "auto" (detect), "none", or a pattern (RGGB, BGGR, GRBG, GBRG)
     selection: SelectionParams = field(default_factory=SelectionParams)
 
 
@@ -55,6 +65,8 @@ class IngestResult:
     names: list[str]  # [M]
     tables: dict[str, np.ndarray]  # per decoded frame [N]: scores, source_index, timestamp
     selection: Selection  # keep mask and reason [N]
+    telemetry: Telemetry | None  # matched telemetry of the decoded frames, if any
+    bayer: str | None  # Bayer pattern demosaiced, if the source was a raw mosaic
     warnings: list[str]
     seconds: float  # wall time of decode + scoring + selection
 
@@ -81,21 +93,39 @@ class IngestResult:
             "min_motion_used": self.selection.min_motion,
             "coverage_gaps": [list(g) for g in self.selection.gaps],
             "camera_source": self.camera_source,
+            "bayer": self.bayer,
+            "defects": self.defects(),
             "crop_box": list(self.framing.box),
             "size": list(self.framing.size),
             "luma_weights": LUMA_WEIGHTS,
             "run_fps": n / max(self.seconds, 1e-9),
             "warnings": self.warnings,
-        }
+        } | ({"telemetry": self.telemetry.record()} if self.telemetry else {})
+
+    def defects(self) -> dict[str, list[int]]:
+        """Decoded frame positions of each stream defect: torn, upside_down, frozen,
+        unreadable (empty lists omitted)."""
+        out = {}
+        for name in ("torn", "upside_down", "frozen", "unreadable"):
+            at = np.flatnonzero(self.selection.reason == REASONS.index(name))
+            if len(at):
+                out[name] = [int(i) for i in at]
+        return out
 
     def summary_line(self) -> str:
         """One line: decoded, kept, dropped by reason, speed of the run."""
         s = self.summary()
         dropped = ", ".join(f"{k} {v}" for k, v in s["dropped"].items()) or "none"  # type: ignore[union-attr]
-        return (
-            f"decoded {s['decoded']} frames, kept {s['kept']}, dropped: {dropped}"
-            f" ({s['run_fps']:.0f} frames/s)"
-        )
+        line = f"decoded {s['decoded']} frames, kept {s['kept']}, dropped: {dropped}"
+        if self.telemetry is not None:
+            t = self.telemetry
+            line += (
+                f"; telemetry {t.layout} matched {int(t.prior_valid.sum())}/{len(t.prior_valid)}"
+                f", {len(t.dropped)} frames lost in transmission"
+            )
+        if self.bayer:
+            line += f"; raw Bayer {self.bayer} mosaic demosaiced"
+        return line + f" ({s['run_fps']:.0f} frames/s)"
 
 
 def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> IngestResult:
@@ -107,8 +137,28 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
             reconstruct: black, blank or frozen footage).
     """
     t0 = time.perf_counter()
-    src = open_source(source, params.fps)
+    path, csv_path, layout = Path(source), None, None
+    if path.is_dir():
+        path, csv_path, layout = find_capture(path)
+    if params.telemetry is not None:
+        csv_path, layout = Path(params.telemetry), None
+        if not csv_path.is_file():
+            raise InputError("telemetry file not found", csv_path)
+    src = open_source(path, params.fps, params.skip_unreadable)
     info = src.info
+    telemetry = None
+    if csv_path is not None:
+        if info.kind != "images":
+            raise InputError(
+                "telemetry is matched to the frames of an image folder, not a video", csv_path
+            )
+        try:
+            columns = parse_columns(params.columns)
+        except ValueError as err:
+            raise InputError(str(err)) from None
+        names = [f.name for f in src.files]  # type: ignore[union-attr]
+        offset = None if params.camera_offset is None else np.asarray(params.camera_offset, float)
+        telemetry = match(csv_path, layout_for(csv_path, columns, layout), names, offset)
     try:
         framing = make_framing((info.width, info.height), params.size, params.crop)
     except ValueError as err:
@@ -124,7 +174,10 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
             f"{framing.size[0]}x{framing.size[1]}: frames are upsampled (no added detail)"
         )
 
-    small, tables = _decode_and_score(src.frames(), framing, info, progress)
+    window = max(WINDOW, params.selection.max_gap)  # pair tables must reach max_gap frames back
+    small, tables, bayer = _decode_and_score(
+        src.frames(), framing, info, params.bayer, window, progress
+    )
     n = len(small)
     if n == 0:
         raise InputError("no decodable frames (empty or damaged video stream)", info.path)
@@ -139,6 +192,8 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
         raise InputError(
             "only one decodable frame: a single view has nothing to reconstruct", info.path
         )
+    if telemetry is not None:
+        tables.update(_telemetry_tables(telemetry, tables["readable"]))
     selection = select_frames(tables, params.selection)
     kept = np.flatnonzero(selection.keep)
     if len(kept) < MIN_KEPT:
@@ -159,26 +214,48 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
         names=names,
         tables={k: v for k, v in tables.items() if k != "name"},
         selection=selection,
+        telemetry=telemetry,
+        bayer=bayer,
         warnings=warnings,
         seconds=time.perf_counter() - t0,
     )
 
 
 def _decode_and_score(
-    frames: Iterator[DecodedFrame], framing: Framing, info: SourceInfo, progress: bool
-) -> tuple[list[np.ndarray], dict[str, np.ndarray]]:
-    """Convert and score every frame; returns the small frames and the tables [N]."""
+    frames: Iterator[DecodedFrame],
+    framing: Framing,
+    info: SourceInfo,
+    bayer: str,
+    window: int,
+    progress: bool,
+) -> tuple[list[np.ndarray], dict[str, np.ndarray], str | None]:
+    """Convert, check and score every frame.
+
+    Returns the small frames, the tables [N] (scores, ``defect`` codes, pair tables of the
+    feature tracks) and the Bayer pattern demosaiced (None: not a mosaic).
+    """
     from dronecap.progress import progress_bar
+
+    pattern: list[str | None] = [None if bayer == "none" else bayer]
 
     def convert() -> Iterator[tuple[DecodedFrame, np.ndarray | None]]:
         for f in frames:
-            yield f, None if f.image is None else framing.apply(f.image)
+            image = f.image
+            if image is not None and image.ndim == 2 and image.dtype == np.uint8:
+                if pattern[0] == "auto":
+                    pattern[0] = detect_bayer(image)
+                if pattern[0] is not None:
+                    image = demosaic(image, pattern[0])
+            yield f, None if image is None else framing.apply(image)
 
     blank = np.zeros((framing.size[1], framing.size[0]), np.uint8)
-    tracker = MotionTracker()
+    tracker = FeatureTracker(window)
+    flips = UpsideDownCheck()
+    prev: np.ndarray | None = None  # previous decoded frame (frozen check)
+    good: np.ndarray | None = None  # previous frame without a defect (tear reference)
     rows: list[tuple[float, ...]] = []
     small: list[np.ndarray] = []
-    meta: list[tuple[int, float, str, bool]] = []
+    meta: list[tuple[int, float, str, bool, int]] = []
     bar = progress_bar(
         prefetch(convert()),
         total=info.expected_frames,
@@ -189,20 +266,45 @@ def _decode_and_score(
         leave=False,
     )
     for f, gray in bar:
-        readable = gray is not None
-        g = gray if readable else blank
-        motion, diff = tracker.update(g)
-        rows.append((*frame_scores(g), diff, motion))
+        defect = 0
+        if gray is not None:
+            if torn_row(gray, good) is not None:
+                defect = TORN
+            elif flips.is_upside_down(gray):
+                defect = UPSIDE_DOWN
+        g = gray if gray is not None else blank
+        tracker.update(g if gray is not None and defect == 0 else None)
+        rows.append((*frame_scores(g), frame_diff(prev, g)))
+        prev = g
+        if gray is not None and defect == 0:
+            good = gray
         small.append(g)
-        meta.append((f.index, f.timestamp, f.name, readable))
+        meta.append((f.index, f.timestamp, f.name, gray is not None, defect))
     bar.close()
     scores = np.array(rows, float).reshape(-1, len(SCORE_NAMES))
     tables: dict[str, np.ndarray] = {name: scores[:, i] for i, name in enumerate(SCORE_NAMES)}
     tables["source_index"] = np.array([m[0] for m in meta], np.int64)
     tables["timestamp"] = np.array([m[1] for m in meta], float)
     tables["readable"] = np.array([m[3] for m in meta], bool)
+    tables["defect"] = np.array([m[4] for m in meta], np.int8)
     tables["name"] = np.array([m[2] for m in meta])
-    return small, tables
+    tables.update(tracker.tables())
+    found = pattern[0] if pattern[0] != "auto" else None
+    return small, tables, found
+
+
+def _telemetry_tables(t: Telemetry, readable: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-decoded-frame telemetry tables; frame times replace the folder's assumed rate."""
+    out = {
+        "prior_c2w": t.prior_c2w,
+        "prior_valid": t.prior_valid,
+        "frame_id": t.frame_id,
+        "camera_frame": t.camera_frame,
+        "dropped_before": t.dropped_before,
+    }
+    if len(t.frame_time) == len(readable) and np.isfinite(t.frame_time).all():
+        out["timestamp"] = t.frame_time
+    return out
 
 
 def _nothing_to_reconstruct(n: int, sel: Selection) -> str:
@@ -220,30 +322,51 @@ def _nothing_to_reconstruct(n: int, sel: Selection) -> str:
 
 
 # Per-decoded-frame tables as stored under /extra in frames.h5 (table name -> extra name).
-EXTRA_NAMES = {name: name for name in SCORE_NAMES} | {
+EXTRA_NAMES = {name: name for name in (*SCORE_NAMES, *PAIR_NAMES)} | {
     "source_index": "decoded_source_index",
     "timestamp": "decoded_timestamp",
     "readable": "readable",
+    "defect": "defect",
+}
+# Telemetry tables (present when the capture had telemetry), stored per decoded frame.
+TELEMETRY_NAMES = {
+    "prior_c2w": "decoded_prior_c2w",
+    "prior_valid": "decoded_prior_valid",
+    "frame_id": "decoded_frame_id",
+    "camera_frame": "camera_frame",
+    "dropped_before": "dropped_before",
 }
 
 
 def tables_to_extra(tables: dict[str, np.ndarray], sel: Selection) -> dict[str, np.ndarray]:
     """The arrays stored under ``/extra``: every table [N], ``keep`` uint8 [N], ``reason``
-    int8 [N] and ``reason_legend`` str [len(REASONS)] (code -> name)."""
-    extra = {EXTRA_NAMES[k]: np.asarray(v) for k, v in tables.items() if k in EXTRA_NAMES}
+    int8 [N] and ``reason_legend`` str [len(REASONS)] (code -> name); with telemetry also the
+    contract's per-KEPT-frame ``prior_c2w`` [M, 4, 4], ``prior_valid`` bool [M] and
+    ``frame_id`` int64 [M]."""
+    names = EXTRA_NAMES | TELEMETRY_NAMES
+    extra = {names[k]: np.asarray(v) for k, v in tables.items() if k in names}
     extra["readable"] = extra["readable"].astype(np.uint8)
     extra["keep"] = sel.keep.astype(np.uint8)
     extra["reason"] = sel.reason.astype(np.int8)
     extra["reason_legend"] = np.array(REASONS)
+    if "prior_c2w" in tables:
+        kept = sel.keep
+        extra["prior_c2w"] = np.asarray(tables["prior_c2w"], np.float64)[kept]
+        extra["prior_valid"] = np.asarray(tables["prior_valid"], bool)[kept]
+        extra["frame_id"] = np.asarray(tables["frame_id"], np.int64)[kept]
     return extra
 
 
 def extra_to_tables(extra: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Inverse of :func:`tables_to_extra` for the score tables (what select_frames reads)."""
+    """Inverse of :func:`tables_to_extra` for the tables (what select_frames reads)."""
     missing = [v for v in EXTRA_NAMES.values() if v not in extra]
     if missing:
-        raise InputError(f"has no ingest score tables to replay (missing {', '.join(missing)})")
-    return {k: np.asarray(extra[v]) for k, v in EXTRA_NAMES.items()}
+        raise InputError(
+            f"has no ingest tables to replay (missing {', '.join(missing)}; "
+            "files from before the feature-track selection need a new `dronecap ingest`)"
+        )
+    names = EXTRA_NAMES | {k: v for k, v in TELEMETRY_NAMES.items() if v in extra}
+    return {k: np.asarray(extra[v]) for k, v in names.items()}
 
 
 def params_record(params: IngestParams) -> dict[str, object]:

@@ -1,91 +1,57 @@
-"""Per-frame quality scores of an output (e.g. 160x160) gray frame, and frame-to-frame motion.
+"""Per-frame quality scores of an output (e.g. 160x160) gray frame, judged on the subject.
 
 All scores are computed on the frame as it will be stored, so they describe what SfM and the
 trainer see. Brightness-dependent numbers are in 8-bit digital numbers (DN, 0..255).
 
-- ``sharpness``: variance of the Laplacian of the lightly smoothed frame (3x3 Gaussian, then
-  3x3 Laplacian), divided by the squared mean brightness. Dividing by brightness squared makes it
-  invariant to exposure gain (both scale by gain^2), so a darker frame of the same view scores
-  the same; the light smoothing keeps sensor noise from passing as detail.
+The *subject* of a frame is where it has texture: pixels whose gradient (after a 3x3 Gaussian)
+exceeds ``DETAIL_GRADIENT`` DN/px, grown by 2 px. A uniform backdrop (white, black, sky) is not
+subject, so it neither counts as detail nor dilutes the blur measure.
+
+- ``sharpness``: energy of the Laplacian over energy of the gradient of the lightly smoothed
+  frame (1/px^2). Blur removes fine scales faster than coarse ones, so this falls when a frame
+  is blurred; it does not depend on exposure gain, contrast or how much of the frame the subject
+  fills (flat areas add nothing to either energy), and fine texture (fur, gravel) raises it
+  rather than lowering it.
 - ``brightness``: mean (DN); ``contrast``: standard deviation (DN).
-- ``clipped``: fraction of pixels at <= 2 or >= 253 DN (under/over-exposed).
-- ``frame_diff``: mean absolute difference to the previous decoded frame (DN); ~0 for a frozen
-  (repeated) frame.
-- ``motion``: median displacement (pixels of the output frame) of corner features tracked from
-  the previous decoded frame with pyramidal Lucas-Kanade, on a half-size copy (80x80 for a
-  160x160 frame: 4x cheaper than full size, within 0.05 px median of it on the simulated
-  corridor); phase correlation when fewer than ``MIN_TRACKS`` features track (nearly
-  textureless frames); NaN when neither works.
+- ``clipped``: fraction of pixels at <= 2 or >= 253 DN (under/over-exposed, or a saturated
+  backdrop: the selection tells them apart with ``detail``).
+- ``detail``: fraction of the frame that is subject (0..1).
+- ``frame_diff``: mean absolute difference to the previous decoded frame (DN, computed by the
+  ingest loop); ~0 for a frozen (repeated) frame.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-SCORE_NAMES = ("sharpness", "brightness", "contrast", "clipped", "frame_diff", "motion")
-MIN_TRACKS = 8
+SCORE_NAMES = ("sharpness", "brightness", "contrast", "clipped", "detail", "frame_diff")
+DETAIL_GRADIENT = 6.0  # DN per pixel: weaker gradients are noise or shading, not texture
 
 
-def frame_scores(gray: np.ndarray) -> tuple[float, float, float, float]:
-    """(sharpness, brightness, contrast, clipped) of one uint8 [H, W] frame; see module doc."""
+def frame_scores(gray: np.ndarray) -> tuple[float, float, float, float, float]:
+    """(sharpness, brightness, contrast, clipped, detail) of one uint8 [H, W] frame."""
     import cv2
 
     mean, std = cv2.meanStdDev(gray)
     brightness, contrast = float(mean[0, 0]), float(std[0, 0])
-    lap = cv2.Laplacian(cv2.GaussianBlur(gray, (3, 3), 0), cv2.CV_32F, ksize=1)
-    _, lap_std = cv2.meanStdDev(lap)
-    sharpness = float(lap_std[0, 0]) ** 2 / max(brightness, 1.0) ** 2
+    smooth = cv2.GaussianBlur(gray, (3, 3), 0).astype(np.float32)
+    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=1)
+    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=1)
+    grad2 = gx * gx + gy * gy
+    lap = cv2.Laplacian(smooth, cv2.CV_32F, ksize=1)
+    sharpness = float(np.mean(lap * lap)) / max(float(np.mean(grad2)), 1e-6)
+    textured = (grad2 > (2.0 * DETAIL_GRADIENT) ** 2).astype(np.uint8)  # Sobel ksize 1: 2x
+    subject = cv2.dilate(textured, np.ones((5, 5), np.uint8))
+    detail = float(subject.mean())
     hist = cv2.calcHist([gray], [0], None, [256], [0, 256])
     clipped = float(hist[:3].sum() + hist[253:].sum()) / gray.size
-    return sharpness, brightness, contrast, clipped
+    return sharpness, brightness, contrast, clipped, detail
 
 
-class MotionTracker:
-    """Feature motion between consecutive frames: call :meth:`update` once per frame in order."""
-
-    def __init__(self, max_features: int = 32) -> None:
-        self.max_features = max_features
-        self._prev: np.ndarray | None = None
-        self._prev_small: np.ndarray | None = None
-        self._pts: np.ndarray | None = None
-
-    def update(self, gray: np.ndarray) -> tuple[float, float]:
-        """Motion from the previous frame to ``gray`` (uint8 [H, W]).
-
-        Returns:
-            (motion, frame_diff): median feature displacement in pixels of ``gray`` (NaN for the
-            first frame or when nothing can be tracked) and mean absolute difference in DN (NaN
-            for the first frame).
-        """
-        import cv2
-
-        scale = 2 if min(gray.shape) >= 64 else 1
-        small = gray
-        if scale == 2:
-            small = cv2.resize(
-                gray, (gray.shape[1] // 2, gray.shape[0] // 2), interpolation=cv2.INTER_AREA
-            )
-        motion = diff = float("nan")
-        if self._prev is not None and self._prev_small is not None:
-            diff = float(cv2.norm(self._prev, gray, cv2.NORM_L1)) / gray.size
-            motion = scale * _track(self._prev_small, small, self._pts)
-        self._prev, self._prev_small = gray, small
-        self._pts = cv2.goodFeaturesToTrack(
-            small, self.max_features, qualityLevel=0.01, minDistance=3, blockSize=3
-        )
-        return motion, diff
-
-
-def _track(prev: np.ndarray, cur: np.ndarray, pts: np.ndarray | None) -> float:
+def frame_diff(prev: np.ndarray | None, gray: np.ndarray) -> float:
+    """Mean absolute difference (DN) of two uint8 [H, W] frames; NaN without ``prev``."""
     import cv2
 
-    if pts is not None and len(pts) >= MIN_TRACKS:
-        nxt, status, _ = cv2.calcOpticalFlowPyrLK(prev, cur, pts, None, winSize=(9, 9), maxLevel=2)
-        ok = status.ravel() == 1
-        if ok.sum() >= MIN_TRACKS:
-            d = (nxt - pts).reshape(-1, 2)[ok]
-            return float(np.median(np.hypot(d[:, 0], d[:, 1])))
-    if float(prev.std()) < 1.0 or float(cur.std()) < 1.0:
-        return float("nan")  # flat frames: no measurable motion
-    (dx, dy), response = cv2.phaseCorrelate(prev.astype(np.float32), cur.astype(np.float32))
-    return float(np.hypot(dx, dy)) if response > 0.05 else float("nan")
+    if prev is None:
+        return float("nan")
+    return float(cv2.norm(prev, gray, cv2.NORM_L1)) / gray.size

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -42,6 +43,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="ingest the frames a truncated video still holds instead of failing",
     )
     p.add_argument(
+        "--skip-unreadable",
+        action="store_true",
+        help="drop image files that do not decode instead of failing",
+    )
+    p.add_argument(
+        "--telemetry",
+        metavar="CSV",
+        help="telemetry CSV of an image folder (default: the capture folder's metadata.csv, "
+        "state.csv or a CSV with known columns; see docs/capture.md)",
+    )
+    p.add_argument(
+        "--columns",
+        help="map telemetry columns: 'file=COL,frame_id=COL,time=COL,x=COL,...,qw=COL' plus "
+        "'unit=mm|m,time_unit=us|ms|s'",
+    )
+    p.add_argument(
+        "--camera-offset",
+        metavar="X,Y,Z",
+        help="camera position in the drone's body axes, metres (default: at the body origin)",
+    )
+    p.add_argument(
+        "--bayer",
+        default="auto",
+        type=str.upper,
+        choices=["AUTO", "NONE", "RGGB", "BGGR", "GRBG", "GBRG"],
+        help="raw Bayer mosaic in gray frames: detect (auto, default), none, or its pattern",
+    )
+    p.add_argument(
         "--replay",
         metavar="FRAMES_H5",
         help="re-run only the selection on the scores stored in FRAMES_H5 (no decoding)",
@@ -64,6 +93,11 @@ def run(args: argparse.Namespace) -> int:
 
     fields = dataclasses.fields(SelectionParams)
     changes = {f.name: getattr(args, f.name) for f in fields if getattr(args, f.name) is not None}
+    bad = SelectionParams().replace(**changes).problems()
+    if not (args.fps > 0 and math.isfinite(args.fps)):
+        bad.insert(0, f"--fps: must be a positive frame rate, got {args.fps}")
+    if bad:
+        raise InputError(bad[0])
     if args.replay:
         return _replay(args, changes)
     if not args.source:
@@ -73,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _ingest(args: argparse.Namespace, selection: object) -> int:
     from dronecap import workspace
-    from dronecap.capture.framing import parse_size
+    from dronecap.capture.framing import parse_numbers, parse_size
     from dronecap.capture.ingest import IngestParams, ingest, params_record, tables_to_extra
     from dronecap.datasets import Dataset, provenance, write_dataset
     from dronecap.errors import InputError
@@ -89,12 +123,25 @@ def _ingest(args: argparse.Namespace, selection: object) -> int:
         intrinsics = _sidecar_calibration(source)
     elif intrinsics.lower() == "none":
         intrinsics = None
+    offset = None
+    if args.camera_offset is not None:
+        try:
+            offset = parse_numbers(args.camera_offset, 3, float, "--camera-offset: give X,Y,Z")
+        except ValueError as err:
+            raise InputError(str(err)) from None
+        if not all(math.isfinite(v) and abs(v) < 10 for v in offset):
+            raise InputError(f"--camera-offset: metres within 10 m, got {args.camera_offset}")
     params = IngestParams(
         size=size,
         crop=args.crop,
         fps=args.fps,
         intrinsics=intrinsics,
         allow_truncated=args.allow_truncated,
+        skip_unreadable=args.skip_unreadable,
+        telemetry=args.telemetry,
+        columns=args.columns,
+        camera_offset=offset,
+        bayer=args.bayer.lower() if args.bayer in ("AUTO", "NONE") else args.bayer,
         selection=selection,  # type: ignore[arg-type]
     )
     out = workspace.resolve(args.workdir, args.output, workspace.FRAMES)
@@ -122,9 +169,10 @@ def _ingest(args: argparse.Namespace, selection: object) -> int:
 
 
 def _sidecar_calibration(source: Path) -> str | None:
-    """``flight.json`` beside ``flight.mp4`` when it holds intrinsics (the simulator writes it)."""
-    side = source.with_suffix(".json")
-    if not source.is_file() or not side.is_file():
+    """``flight.json`` beside ``flight.mp4`` (or inside a capture folder) when it holds
+    intrinsics (the simulator writes it)."""
+    side = source / "flight.json" if source.is_dir() else source.with_suffix(".json")
+    if not source.exists() or not side.is_file():
         return None
     try:
         doc = json.loads(side.read_text())

@@ -48,3 +48,18 @@ def write_video(
 def pan_video(tmp_path: Path) -> Path:
     """48 frames of 320x240 panning 3 px/frame (2 px/frame at 160x160: crop 240, scale 2/3)."""
     return write_video(tmp_path / "pan.avi", pan(48, (320, 240), 3.0))
+
+
+def white_orbit_frames(lego: Path, views: range | None = None) -> list[np.ndarray]:
+    """The lego test views (an orbit of 200) composited on pure 255 white, as gray uint8 [H, W].
+
+    The object covers a small part of every frame: the rest is a uniform, saturated backdrop.
+    """
+    names = [f"r_{i}.png" for i in (views if views is not None else range(200))]
+    out = []
+    for name in names:
+        rgba = cv2.imread(str(lego / "test" / name), cv2.IMREAD_UNCHANGED).astype(np.float32)
+        alpha = rgba[..., 3:] / 255.0
+        bgr = rgba[..., :3] * alpha + 255.0 * (1.0 - alpha)
+        out.append(cv2.cvtColor(np.rint(bgr).astype(np.uint8), cv2.COLOR_BGR2GRAY))
+    return out
