@@ -1,7 +1,7 @@
 """Calibration files: the one loader for every form of known intrinsics, and the JSON writer.
 
-Accepted forms (pixels of the calibrated frames, pixel centres at integer + 0.5, OpenCV's
-distortion order ``k1, k2, p1, p2[, k3[, k4, k5, k6]]``; fisheye ``k1, k2, k3, k4``):
+Accepted forms (pixels of the calibrated frames, OpenCV's distortion order
+``k1, k2, p1, p2[, k3[, k4, k5, k6]]``; fisheye ``k1, k2, k3, k4``):
 
 - ``"fx,fy,cx,cy"`` (the frame size is the source's);
 - the calibration JSON of ``dronecap calibrate``: ``K`` (3x3), ``distortion``, ``model``
@@ -14,6 +14,11 @@ distortion order ``k1, k2, p1, p2[, k3[, k4, k5, k6]]``; fisheye ``k1, k2, k3, k
 - OpenCV ``FileStorage`` YAML or XML (``.yml``, ``.yaml``, ``.xml``): ``camera_matrix``,
   ``distortion_coefficients``, ``image_width``, ``image_height`` (what OpenCV's calibration
   samples write); a fisheye one says so with ``fisheye_model: 1`` or ``model: fisheye``.
+
+Pixel convention: dronecap (like COLMAP) puts the centre of pixel (u, v) at (u + 0.5, v + 0.5);
+OpenCV puts it at (u, v). ``fx, fy, cx, cy`` keys are taken as dronecap's; a matrix (``K`` /
+``camera_matrix``, JSON or YAML/XML) as OpenCV's, so 0.5 px is added to its cx, cy -- unless the
+file says ``"pixel_center_offset": 0.5`` (what :func:`calibration_record` writes).
 
 Distortion is never dropped: a file with distortion gives a :class:`Camera` with it, or an
 :class:`InputError` when it cannot be represented. A calibration of another size with the same
@@ -36,6 +41,8 @@ from dronecap.errors import InputError
 OPENCV_STORAGE_SUFFIXES = (".yml", ".yaml", ".xml")
 ASPECT_TOLERANCE_PX = 1.0  # sizes of the same aspect may differ by this much after rounding
 MODELS = ("pinhole", "fisheye")  # "model" of a calibration JSON (OpenCV's two lens families)
+DRONECAP_OFFSET = 0.5  # dronecap's pixel (u, v) has its centre at (u + 0.5, v + 0.5)
+OPENCV_OFFSET = 0.0  # OpenCV's at (u, v)
 
 
 def load_camera(spec: str, source_size: tuple[int, int]) -> tuple[Camera, str]:
@@ -111,11 +118,13 @@ def _from_mapping(d: dict[str, Any], default_size: tuple[int, int], path: Path) 
         if all(k in d for k in ("fx", "fy", "cx", "cy")):
             fx, fy, cx, cy = (float(d[k]) for k in ("fx", "fy", "cx", "cy"))
             k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+            offset = float(d.get("pixel_center_offset", DRONECAP_OFFSET))
         else:
             k = d.get("K", d.get("camera_matrix"))
             if k is None:
                 raise KeyError("fx, fy, cx, cy (or a 3x3 K / camera_matrix)")
             k = np.asarray(k, float).reshape(3, 3)
+            offset = float(d.get("pixel_center_offset", OPENCV_OFFSET))
         dist = next((d[n] for n in ("distortion", "dist", "distortion_coefficients") if n in d), [])
         size = d.get("size") or (
             d.get("width", d.get("image_width")),
@@ -125,7 +134,8 @@ def _from_mapping(d: dict[str, Any], default_size: tuple[int, int], path: Path) 
     except (KeyError, IndexError, TypeError, ValueError) as err:
         raise InputError(f"calibration JSON lacks usable intrinsics: {err}", path) from None
     model = str(d.get("model", "pinhole")).lower()
-    return _camera(k, dist, model, (w or default_size[0], h or default_size[1]), path)
+    size = (w or default_size[0], h or default_size[1])
+    return _camera(_to_dronecap(k, offset), dist, model, size, path)
 
 
 def _from_opencv_storage(path: Path, default_size: tuple[int, int]) -> Camera:
@@ -151,7 +161,7 @@ def _from_opencv_storage(path: Path, default_size: tuple[int, int]) -> Camera:
     finally:
         fs.release()
     size = (w, h) if w > 0 and h > 0 else default_size
-    return _camera(k, [] if dist is None else dist, model, size, path)
+    return _camera(_to_dronecap(k, OPENCV_OFFSET), [] if dist is None else dist, model, size, path)
 
 
 def _camera(k, dist, model: str, size: tuple[int, int], path: Path) -> Camera:
@@ -171,10 +181,18 @@ def _camera(k, dist, model: str, size: tuple[int, int], path: Path) -> Camera:
         raise InputError(f"distortion cannot be used: {err}", path) from None
 
 
+def _to_dronecap(k: np.ndarray, offset: float) -> np.ndarray:
+    """K [3, 3] of a file whose pixel centres sit at integer + ``offset`` -> dronecap's K."""
+    k = np.array(k, float)
+    k[:2, 2] += DRONECAP_OFFSET - offset
+    return k
+
+
 def calibration_record(cam: Camera, **fields: Any) -> dict[str, Any]:
     """The calibration JSON object of ``cam`` (what :func:`read_camera` reads back):
-    ``K``, ``distortion`` (OpenCV order), ``model``, ``width``, ``height``, plus the flat
-    ``fx, fy, cx, cy`` for readers that want them, then ``fields`` (rms, views, ...)."""
+    ``K``, ``distortion`` (OpenCV order), ``model``, ``width``, ``height``, the flat
+    ``fx, fy, cx, cy`` for readers that want them and ``pixel_center_offset`` 0.5 (K is in
+    dronecap's convention: subtract 0.5 from cx, cy for OpenCV's), then ``fields``."""
     coeffs = [float(x) for x in cam.opencv_coeffs()]
     if not cam.is_fisheye:  # OpenCV's usual 5-vector unless k4..k6 are used
         coeffs = (coeffs + [0.0] * 5)[: 8 if any(coeffs[5:]) else 5]
@@ -188,6 +206,7 @@ def calibration_record(cam: Camera, **fields: Any) -> dict[str, Any]:
         "fy": cam.fy,
         "cx": cam.cx,
         "cy": cam.cy,
+        "pixel_center_offset": DRONECAP_OFFSET,
     }
     out.update(fields)
     return _finite_json(out)

@@ -23,6 +23,7 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("simulate", "render a synthetic nano-drone flight video with ground truth"),
     "ingest": ("ingest", "decode a flight video to 160x160 gray, select frames -> frames.h5"),
+    "calibrate": ("calibrate", "calibrate a camera from images or a video of a board"),
     "sfm": ("sfm", "recover camera poses with COLMAP, normalise and bound -> posed.h5"),
     "split": ("split", "train/test split of a posed flight -> dataset.h5"),
     "shard": ("shard", "IID or viewpoint-sector shards, one file per drone -> shards/"),

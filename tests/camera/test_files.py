@@ -30,8 +30,9 @@ def test_calibration_json_keeps_distortion_and_scales_to_half_resolution(tmp_pat
     path = tmp_path / "calib.json"
     path.write_text(json.dumps({"K": K, "distortion": DIST, "width": 1280, "height": 960}))
     cam, origin = load_camera(str(path), (640, 480))
-    # Half the resolution: f, c halve (650 -> 325, 470 -> 235); distortion unchanged.
-    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (500.0, 501.0, 325.0, 235.0)
+    # A K matrix is OpenCV's (pixel centres at integers): cx 650 -> 650.5, cy 470 -> 470.5 in
+    # dronecap's convention; half the resolution halves f and c; distortion unchanged.
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (500.0, 501.0, 325.25, 235.25)
     assert cam.opencv_coeffs()[:5].tolist() == DIST and origin == "calibration"
     with pytest.raises(InputError, match="aspect"):
         load_camera(str(path), (640, 640))
@@ -43,6 +44,10 @@ def test_written_record_reads_back_the_same_camera(tmp_path):
     write_calibration(path, calibration_record(cam, rms=0.3))
     doc = json.loads(path.read_text())
     assert doc["model"] == "pinhole" and doc["distortion"] == DIST and doc["rms"] == 0.3
+    assert doc["K"] == K and doc["pixel_center_offset"] == 0.5  # K in dronecap's convention
+    del doc["fx"]  # read through K, which the offset key marks as dronecap's
+    path.write_text(json.dumps(doc))
+    assert load_camera(str(path), (1280, 960))[0] == cam
     assert load_camera(str(path), (1280, 960))[0] == cam
     fish = Camera.from_opencv(np.array(K), [0.1, -0.01, 0.002, 0.0], 1280, 960, fisheye=True)
     write_calibration(path, calibration_record(fish))
@@ -69,7 +74,7 @@ def test_opencv_yaml_and_xml_written_by_filestorage(tmp_path):
         fs.write("distortion_coefficients", np.array(DIST).reshape(5, 1))
         fs.release()
         cam, origin = load_camera(str(path), (640, 480))
-        assert (cam.fx, cam.cx, cam.cy) == (500.0, 325.0, 235.0), name
+        assert (cam.fx, cam.cx, cam.cy) == (500.0, 325.25, 235.25), name  # (650 + .5) / 2
         assert cam.opencv_coeffs()[:5].tolist() == DIST and origin == "calibration"
 
 

@@ -15,7 +15,8 @@ from tests.capture.conftest import pan, write_video
 def test_calibration_json_distortion_reaches_frames_h5(tmp_path):
     video = write_video(tmp_path / "pan.avi", pan(24, (320, 240), 3.0))
     calib = tmp_path / "calib.json"
-    # Calibrated at 640x480 (twice the video): fx 600 -> 300, cx 330 -> 165, cy 250 -> 125.
+    # Calibrated at 640x480 (twice the video); K is OpenCV's (centres at integers, +0.5 here):
+    # fx 600 -> 300, cx 330.5 -> 165.25, cy 250.5 -> 125.25.
     k = [[600.0, 0, 330.0], [0, 604.0, 250.0], [0, 0, 1]]
     dist = [-0.1, 0.02, 0.001, 0.0, 0.0]
     calib.write_text(json.dumps({"K": k, "distortion": dist, "width": 640, "height": 480}))
@@ -26,7 +27,7 @@ def test_calibration_json_distortion_reaches_frames_h5(tmp_path):
     # Centre crop of 320x240: x0 = 40, 240x240 -> 160x160 (s = 2/3).
     s = 2 / 3
     assert cam.fx == pytest.approx(300 * s) and cam.fy == pytest.approx(302 * s)
-    assert cam.cx == pytest.approx((165 - 40) * s) and cam.cy == pytest.approx(125 * s)
+    assert cam.cx == pytest.approx((165.25 - 40) * s) and cam.cy == pytest.approx(125.25 * s)
     np.testing.assert_allclose(cam.opencv_coeffs()[:5], dist)
 
 

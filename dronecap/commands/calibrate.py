@@ -1,0 +1,126 @@
+"""``dronecap calibrate``: images or a video of a calibration board -> calib.json (+ a plot).
+
+``dronecap calibrate left*.jpg --pattern chessboard --board 9x6 --square 0.025 -o calib.json``
+finds the board in every image, calibrates with OpenCV and writes K, the distortion (OpenCV
+order), the model, the image size, the RMS and per-view errors, the views used and rejected (with
+reasons) and warnings. ``--video calib.mp4`` picks well-spread sharp frames first. The JSON is
+what ``dronecap ingest --intrinsics`` reads (see docs/camera.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+HELP = "calibrate a camera from images or a video of a board"
+OUTPUT = "calib.json"  # default output, in the workspace
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of the command."""
+    from dronecap.camera.calibrate import MAX_VIEW_ERROR_PX, MODELS
+    from dronecap.camera.targets import PATTERNS, SUBPIX_WINDOW
+    from dronecap.camera.views import MAX_VIEWS
+
+    p.add_argument("images", nargs="*", help="calibration images: files, folders or globs")
+    p.add_argument("--video", help="a video of the board instead of images")
+    p.add_argument("--pattern", required=True, choices=PATTERNS, help="board type")
+    p.add_argument(
+        "--board",
+        required=True,
+        help="WxH: inner corners (chessboard), squares (charuco) or markers (aruco-grid)",
+    )
+    p.add_argument("--square", type=float, default=1.0, help="square side (board units)")
+    p.add_argument("--marker", type=float, help="marker side (charuco, aruco-grid)")
+    p.add_argument("--gap", type=float, help="space between markers (aruco-grid)")
+    p.add_argument("--dictionary", default="DICT_6X6_250", help="ArUco dictionary")
+    p.add_argument("--model", default="pinhole", choices=MODELS, help="lens model")
+    p.add_argument(
+        "--subpix-window",
+        type=int,
+        default=SUBPIX_WINDOW,
+        help="chessboard corner refinement half-window (px); 0: 0.4 x the corner spacing, for "
+        "small boards in small images",
+    )
+    p.add_argument(
+        "--max-views", type=int, default=MAX_VIEWS, help="most views taken from a --video"
+    )
+    p.add_argument(
+        "--max-view-error",
+        type=float,
+        default=MAX_VIEW_ERROR_PX,
+        help="reject views whose RMS error exceeds this (px) and 3x the median",
+    )
+    p.add_argument("-o", "--output", help=f"calibration JSON (default: WORKDIR/{OUTPUT})")
+    p.add_argument("--plot", help="also write a PNG of the corner coverage and per-view errors")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Validate every option, find the board, calibrate, write the outputs."""
+    from dronecap import workspace
+    from dronecap.camera.calibrate import MIN_VIEWS, calibrate, find_boards
+    from dronecap.camera.files import write_calibration
+    from dronecap.camera.views import pick_video_views, read_images
+    from dronecap.errors import InputError
+
+    board = _board(args)
+    if bool(args.images) == bool(args.video):
+        raise InputError("give calibration images or --video FILE (one of them)")
+    if args.max_views < MIN_VIEWS:
+        raise InputError(f"--max-views must be at least {MIN_VIEWS}, got {args.max_views}")
+    if not args.max_view_error > 0:
+        raise InputError(f"--max-view-error must be positive, got {args.max_view_error}")
+    if args.plot and not args.plot.lower().endswith(".png"):
+        raise InputError("--plot must name a .png file", args.plot)
+    out = workspace.resolve(args.workdir, args.output, OUTPUT)
+
+    if args.video:
+        views, rejected, size, decoded = pick_video_views(args.video, board, args.max_views)
+        print(f"{args.video}: {decoded} frames, {len(views)} well-spread views of the board")
+    else:
+        views, rejected, size = find_boards(read_images(args.images), board)
+    cal = calibrate(views, size, board, args.model, rejected, args.max_view_error)
+    write_calibration(out, cal.record())
+    if args.plot:
+        from dronecap.camera.plot import plot_calibration
+
+        plot_calibration(cal, views, args.plot)
+    k = cal.camera
+    for name, why in cal.rejected.items():
+        if not why.startswith(("near-duplicate", "more than")):
+            print(f"rejected {name}: {why}")
+    for w in cal.warnings:
+        print(f"dronecap calibrate: warning: {w}", file=sys.stderr)
+    dist = ", ".join(f"{x:.4g}" for x in k.opencv_coeffs()[: 4 if k.is_fisheye else 5])
+    print(
+        f"{args.model} {k.width}x{k.height}: fx {k.fx:.2f}, fy {k.fy:.2f}, cx {k.cx:.2f}, "
+        f"cy {k.cy:.2f}, distortion [{dist}], RMS {cal.rms:.3f} px from {len(cal.view_errors)} "
+        f"views -> {out}"
+    )
+    return 0
+
+
+def _board(args: argparse.Namespace):
+    """The Board of the options, or InputError naming the bad one."""
+    from dronecap.camera.targets import Board
+    from dronecap.errors import InputError
+
+    parts = args.board.lower().replace("×", "x").split("x")
+    try:
+        cols, rows = (int(v) for v in parts)
+    except ValueError:
+        raise InputError(f"--board must be WxH, e.g. 9x6, got {args.board!r}") from None
+    board = Board(
+        args.pattern,
+        cols,
+        rows,
+        args.square,
+        args.marker,
+        args.gap,
+        args.dictionary.upper(),
+        args.subpix_window,
+    )
+    problems = board.problems()
+    if problems:
+        raise InputError(problems[0])
+    return board

@@ -1,0 +1,162 @@
+"""``dronecap calibrate``: OpenCV reference results, a known synthetic lens, a video, bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from dronecap.camera import Camera
+from dronecap.camera.calibrate import calibrate, find_boards
+from dronecap.camera.targets import Board
+from dronecap.cli import main
+from tests.camera.conftest import board_images, board_poses
+from tests.capture.conftest import write_video
+from tests.conftest import SHARED_DATA
+
+CALIB_DATA = SHARED_DATA / "calibration"
+CHESS = CALIB_DATA / "opencv_chessboard"
+CHARUCO = CALIB_DATA / "opencv_charuco"
+# A 320x240 lens like a nano-drone camera's: off-centre principal point, barrel distortion.
+LENS = Camera(300.0, 302.0, 165.0, 118.0, 320, 240, "OPENCV", (-0.25, 0.08, 0.001, -0.001))
+FISHEYE = Camera(160.0, 160.0, 160.0, 120.0, 320, 240, "OPENCV_FISHEYE", (0.05, -0.01, 0, 0))
+AUTO = Board("chessboard", 9, 6, subpix_window=0)  # squares of ~20 px need a smaller window
+
+
+def calibrate_cli(tmp_path: Path, *args: str) -> tuple[int, dict | None]:
+    out = tmp_path / "calib.json"
+    rc = main(["calibrate", *args, "-o", str(out)])
+    return rc, json.loads(out.read_text()) if out.exists() else None
+
+
+def reference(path: Path) -> dict:
+    if not path.exists():
+        pytest.skip(f"calibration reference data not found at {path.parent} (../shared/data)")
+    return json.loads(path.read_text())
+
+
+def test_chessboard_left_matches_opencv_reference(tmp_path):
+    ref = reference(CHESS / "reference_calibration_opencv5.json")["left"]
+    rc, got = calibrate_cli(
+        tmp_path, str(CHESS / "left*.jpg"), "--pattern", "chessboard", "--board", "9x6"
+    )
+    assert rc == 0 and len(got["views_used"]) == ref["found"] == 13
+    k = np.array(ref["K"])
+    assert got["fx"] == pytest.approx(k[0, 0], rel=0.005)
+    assert got["fy"] == pytest.approx(k[1, 1], rel=0.005)
+    # The reference is in OpenCV's pixel convention (centres at integers); ours adds 0.5.
+    assert got["cx"] - 0.5 == pytest.approx(k[0, 2], abs=1.0)
+    assert got["cy"] - 0.5 == pytest.approx(k[1, 2], abs=1.0)
+    assert got["rms"] == pytest.approx(ref["rms"], abs=0.05)
+    assert got["model"] == "pinhole" and len(got["distortion"]) == 5
+    assert got["width"] == 640 and got["height"] == 480
+
+
+def test_charuco_matches_opencv_reference(tmp_path):
+    ref = reference(CHARUCO / "reference_calibration_opencv5.json")
+    rc, got = calibrate_cli(
+        tmp_path,
+        *sorted(str(p) for p in CHARUCO.glob("img_0*.jpg")),
+        *("--pattern", "charuco", "--board", "5x7", "--square", "0.04", "--marker", "0.02"),
+    )
+    assert rc == 0 and len(got["views_used"]) == ref["n_views"] == 4
+    k = np.array(ref["K"])
+    assert got["fx"] == pytest.approx(k[0, 0], rel=0.01)
+    assert got["fy"] == pytest.approx(k[1, 1], rel=0.01)
+    assert got["cx"] - 0.5 == pytest.approx(k[0, 2], rel=0.01)
+    assert got["cy"] - 0.5 == pytest.approx(k[1, 2], rel=0.01)
+    assert got["rms"] == pytest.approx(ref["rms"], rel=0.01)
+    # Four views leave k2, k3 loose and the lower-right corner of the image without a corner.
+    assert any("poorly constrained" in w for w in got["warnings"])
+    assert any("bottom-right corner" in w for w in got["warnings"])
+
+
+@pytest.fixture(scope="module")
+def lens_images():
+    return [(f"v{i}", im) for i, im in enumerate(board_images(LENS, board_poses(8)))]
+
+
+def same_rays(got: Camera, true: Camera, tol_px: float) -> None:
+    """Rays through a 3x3 grid of pixels (15 %, 50 %, 85 % of the width and height: where the
+    boards were; beyond them the fit extrapolates) of ``got`` project through ``true`` to the
+    same pixels (the distortion that matters, whatever the individual coefficients)."""
+    w, h = true.width, true.height
+    uv = np.array([[f * w, g * h] for f in (0.15, 0.5, 0.85) for g in (0.15, 0.5, 0.85)])
+    xy = got.undistort_points(uv)
+    np.testing.assert_allclose(true.project(np.c_[xy, np.ones(len(xy))]), uv, atol=tol_px)
+
+
+def test_known_lens_is_recovered_in_dronecap_pixel_convention(lens_images):
+    """Images rendered through LENS (pixel centres at +0.5): the calibration gives LENS back."""
+    views, rejected, size = find_boards(lens_images, AUTO)
+    assert size == (320, 240) and len(views) == 8 and not rejected
+    cal = calibrate(views, size, AUTO)
+    k = cal.camera
+    assert k.fx == pytest.approx(300.0, rel=0.005) and k.fy == pytest.approx(302.0, rel=0.005)
+    assert k.cx == pytest.approx(165.0, abs=0.6) and k.cy == pytest.approx(118.0, abs=0.6)
+    assert k.opencv_coeffs()[0] == pytest.approx(-0.25, abs=0.01)
+    assert cal.rms < 0.2
+    same_rays(k, LENS, 0.75)
+
+
+def test_large_window_on_small_squares_is_warned_about(lens_images):
+    board = Board("chessboard", 9, 6)  # default 11-px half-window, squares ~20 px
+    views, _, size = find_boards(lens_images, board)
+    cal = calibrate(views, size, board)
+    assert any("--subpix-window 0" in w for w in cal.warnings)
+
+
+def test_fisheye_lens_is_recovered():
+    images = board_images(FISHEYE, board_poses(8, distance=8.0))
+    views, _, size = find_boards(((f"v{i}", im) for i, im in enumerate(images)), AUTO)
+    cal = calibrate(views, size, AUTO, model="fisheye")
+    k = cal.camera
+    assert k.is_fisheye and k.fx == pytest.approx(160.0, rel=0.005)
+    assert k.cx == pytest.approx(160.0, abs=0.5) and k.cy == pytest.approx(120.0, abs=0.5)
+    same_rays(k, FISHEYE, 0.75)
+
+
+def test_video_gives_one_view_per_pose_and_drops_blurry_frames(tmp_path, capsys):
+    poses = board_poses(6, seed=1)
+    frames = []
+    for img in board_images(LENS, poses):
+        frames += [img] * 4 + [cv2.GaussianBlur(img, (0, 0), 3.0)] * 2  # lingering, then moving
+    video = write_video(tmp_path / "board.avi", frames)
+    rc, got = calibrate_cli(
+        tmp_path, "--video", str(video), "--pattern", "chessboard", "--board", "9x6",
+        "--subpix-window", "0",
+    )  # fmt: skip
+    assert rc == 0
+    assert len(got["views_used"]) == 6  # 36 frames, 6 distinct poses
+    reasons = list(got["rejected"].values())
+    assert sum(r.startswith("blurry") for r in reasons) >= 6
+    assert sum(r.startswith("near-duplicate") for r in reasons) >= 12
+    assert got["fx"] == pytest.approx(300.0, rel=0.01)
+
+
+def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    noise = tmp_path / "noise"
+    noise.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(noise / f"n{i}.png"), rng.integers(0, 255, (120, 160), np.uint8))
+    board = ("--pattern", "chessboard", "--board", "9x6")
+
+    def fails(*args: str, match: str) -> None:
+        rc, got = calibrate_cli(tmp_path, *args)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 1 and got is None and len(err) == 1 and match in err[0], err
+
+    fails(str(noise), *board, match="no chessboard 9x6 board found in any of the 3 images")
+    one = board_images(LENS, board_poses(1))[0]
+    cv2.imwrite(str(tmp_path / "one.png"), one)
+    fails(str(tmp_path / "one.png"), *board, match="found in only 1 of 1 images")
+    cv2.imwrite(str(tmp_path / "big.png"), cv2.resize(one, (640, 480)))
+    fails(str(tmp_path / "one.png"), str(tmp_path / "big.png"), *board, match="640x480")
+    fails(str(noise), "--pattern", "chessboard", "--board", "9", match="--board must be WxH")
+    fails(str(noise), "--pattern", "charuco", "--board", "5x7", match="--marker")
+    fails(str(tmp_path / "missing*.png"), *board, match="no calibration images")
+    fails(*board, match="give calibration images or --video")
