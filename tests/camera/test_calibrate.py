@@ -160,3 +160,33 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
     fails(str(noise), "--pattern", "charuco", "--board", "5x7", match="--marker")
     fails(str(tmp_path / "missing*.png"), *board, match="no calibration images")
     fails(*board, match="give calibration images or --video")
+
+
+def test_aruco_grid_through_a_known_pinhole(tmp_path):
+    """An ArUco grid drawn by OpenCV, viewed through K (dronecap convention) by homographies."""
+    board = Board("aruco-grid", 4, 5, marker=0.04, gap=0.01)
+    scale, margin = 2000.0, 20  # generated image: px per board unit, border px
+    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)
+    grid = cv2.aruco.GridBoard((4, 5), 0.04, 0.01, d)
+    art = grid.generateImage((380 + 2 * margin, 480 + 2 * margin), marginSize=margin)
+    k = np.array([[400.0, 0, 330.0], [0, 400.0, 236.0], [0, 0, 1]])
+    # art pixel index i (centre i + .5) -> board unit (i + .5 - margin) / scale
+    off = (0.5 - margin) / scale
+    art_to_board = np.array([[1 / scale, 0, off], [0, 1 / scale, off], [0, 0, 1]])
+    to_opencv_px = np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1.0]])
+    names = []
+    for i, (rvec, tvec) in enumerate(board_poses(6)):
+        r, _ = cv2.Rodrigues(rvec)
+        # the chessboard poses scaled by 0.025 (board middle 0.375 m away), grid middle there
+        t = (tvec + r @ np.array([4.0, 2.5, 0])) * 0.025 - r @ np.array([0.095, 0.12, 0])
+        h = to_opencv_px @ k @ np.c_[r[:, :2], t] @ art_to_board
+        view = cv2.warpPerspective(art, h, (640, 480), flags=cv2.INTER_AREA, borderValue=160)
+        names.append(str(tmp_path / f"g{i}.png"))
+        cv2.imwrite(names[-1], view)
+    rc, got = calibrate_cli(
+        tmp_path, *names, "--pattern", "aruco-grid", "--board", "4x5", "--marker", "0.04",
+        "--gap", "0.01",
+    )  # fmt: skip
+    assert rc == 0 and len(got["views_used"]) == 6 and got["target"] == board.record()
+    assert got["fx"] == pytest.approx(400.0, rel=0.01) and got["fy"] == pytest.approx(400, rel=0.01)
+    assert got["cx"] == pytest.approx(330.0, abs=1.5) and got["cy"] == pytest.approx(236.0, abs=1.5)
