@@ -133,7 +133,7 @@ def ngp_rules(path: Path, must_not_contain: set[str] = frozenset()) -> list[str]
 def lego_colmap_model(ds, out: Path, n_views: int = 24, n_points: int = 400, seed: int = 0):
     """A COLMAP model of ``n_views`` train views of an imported lego dataset, made with pycolmap
     in a "COLMAP frame" that differs from the dataset's by a similarity, with exact keypoints of
-    random points inside the AABB, plus one unregistered image. Writes ``out/sparse`` (binary)
+    random points inside the AABB. Writes ``out/sparse`` (binary)
     and ``out/images`` (PNGs at the dataset size, the names the model uses).
 
     Returns:
@@ -174,9 +174,6 @@ def lego_colmap_model(ds, out: Path, n_views: int = 24, n_points: int = 400, see
         )
         bgr = ds.images[f][:, :, ::-1]
         cv2.imwrite(str(out / "images" / name), bgr)
-    extra = pycolmap.Image(name="unregistered.png", camera_id=1, image_id=len(idx) + 1)
-    rec.add_image_with_trivial_frame(extra)
-    cv2.imwrite(str(out / "images" / "unregistered.png"), ds.images[0][:, :, ::-1])
     pts_col = pts @ s[:3, :3].T + s[:3, 3]
     for p, tr in enumerate(tracks):
         if len(tr) >= 2:
