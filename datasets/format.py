@@ -31,7 +31,7 @@ checksums) are still read.
 
 Validation (:meth:`Dataset.validate`, run on every write and every read) checks the schema,
 dtypes and shapes, finite values, rigid camera rotations, the camera (``Camera.problems``), an
-AABB with max > min in front of the cameras, 0 <= near < far, a background in [0, 1]. Every
+AABB with max > min that some camera sees, 0 <= near < far, a background in [0, 1]. Every
 failure is a :class:`DatasetError`: one line naming the file, the field and the problem.
 """
 
@@ -221,13 +221,38 @@ class Dataset:
         a = self.aabb
         if not _float_array(a, (2, 3)) or not np.all(a[1] > a[0]):
             return f"must be finite [[min xyz], [max xyz]] with max > min, found {_describe(a)}"
-        if self.poses is not None and self.n:
-            corners = np.stack(np.meshgrid(*np.asarray(a).T, indexing="ij"), -1).reshape(8, 3)
-            rel = corners[None] - self.poses[:, None, :3, 3]  # [N, 8, 3]
-            depth = np.einsum("nkj,nj->nk", rel, self.poses[:, :3, 2])
-            if not (depth > 0).any():
-                return f"{np.asarray(a).tolist()} lies behind every camera"
+        if self.poses is not None and self.n and not _box_seen(np.asarray(a), self.poses, self):
+            return f"{np.asarray(a).tolist()} is outside every camera's view"
         return None
+
+
+def _box_seen(box: np.ndarray, poses: np.ndarray, ds: Dataset) -> bool:
+    """Whether some camera sees part of ``box`` [2, 3]: a camera inside it, one of 5^3 points
+    spread over it inside an image, or a ray through an image's centre or corners hitting it.
+    Without intrinsics: some part of it lies in front of a camera."""
+    t = np.linspace(0.0, 1.0, 5)
+    pts = box[0] + (box[1] - box[0]) * np.stack(np.meshgrid(t, t, t), -1).reshape(-1, 3)
+    cam = np.einsum("nji,nkj->nki", poses[:, :3, :3], pts[None] - poses[:, None, :3, 3])
+    inside = ((poses[:, :3, 3] >= box[0]) & (poses[:, :3, 3] <= box[1])).all(1)
+    k = ds.intrinsics
+    if k is None:
+        return bool(inside.any() or (cam[..., 2] > 0).any())
+    z = np.where(cam[..., 2] > 0, cam[..., 2], np.inf)
+    u, v = k.fx * cam[..., 0] / z + k.cx, k.fy * cam[..., 1] / z + k.cy
+    in_image = (cam[..., 2] > 0) & (u >= 0) & (u <= k.width) & (v >= 0) & (v <= k.height)
+    if inside.any() or in_image.any():
+        return True
+    uv = np.array([[k.width / 2, k.height / 2], [0, 0], [k.width, 0], [0, k.height]])
+    uv = np.concatenate([uv, [[k.width, k.height]]])
+    d_cam = np.stack([(uv[:, 0] - k.cx) / k.fx, (uv[:, 1] - k.cy) / k.fy, np.ones(5)], 1)
+    d = np.einsum("nij,kj->nki", poses[:, :3, :3], d_cam)  # [N, 5, 3] world directions
+    o = poses[:, None, :3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (box[0] - o) / d, (box[1] - o) / d  # 0/0: the ray runs in a slab's face
+    t0, t1 = np.where(np.isnan(t0), -np.inf, t0), np.where(np.isnan(t1), np.inf, t1)
+    near = np.minimum(t0, t1).max(-1)
+    far = np.maximum(t0, t1).min(-1)
+    return bool(((far >= near) & (far > 0)).any())
 
 
 def _pose_problem(poses: np.ndarray) -> str | None:

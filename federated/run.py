@@ -25,7 +25,8 @@ Non-averaged state stays with the drone across rounds: its occupancy grid (unles
 its Adam moments and step counter (never reset: a drone's optimizer continues from its previous
 round, only the parameters are replaced by the global ones). A drone that raises or does not
 reply within ``round_timeout`` is left out of that round's average; next round it continues
-from its last checkpoint.
+from its last checkpoint. A round where every drone failed raises :class:`FederationFailed`
+(never a round recorded with the old model); the rounds before it stay recorded.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ from flwr.clientapp import ClientApp
 from flwr.serverapp import Grid, ServerApp
 
 from dronecap.datasets.format import Dataset, open_dataset
+from dronecap.errors import InputError
 from dronecap.federated.fedavg import (
     WEIGHT_KEY,
     DroneFedAvg,
@@ -64,6 +66,12 @@ SETTINGS = "federation.json"
 ROUNDS = "rounds.json"
 FINAL = "checkpoint.pt"
 PRETRAIN_ACTION = f"{MessageType.TRAIN}.pretrain"
+EVERY_CLIENT = -2  # fail_client value: every drone fails in fail_round (fault injection)
+
+
+class FederationFailed(InputError):
+    """A federation that cannot go on: every drone failed a round, or the pretraining failed.
+    The rounds completed so far are kept; a rerun resumes from the last of them."""
 
 
 @dataclass
@@ -82,9 +90,10 @@ class FedSettings:
     server_momentum: float = 0.0  # FedAvgM server momentum
     eval_views: int = 0  # test views for the per-round PSNR (0: all)
     round_timeout: float = 3600.0  # seconds the server waits for a round's replies
-    fail_client: int = -1  # fault injection: this partition raises ...
+    fail_client: int = -1  # fault injection: this partition (EVERY_CLIENT: all) raises ...
     fail_round: int = -1  # ... in this round (-1: never)
     seed: int = 0
+    shard_sha256: list[str] = field(default_factory=list)  # content of each shard at the start
 
     def __post_init__(self) -> None:
         self.cfg = json.loads(json.dumps(self.cfg))  # tuples -> lists, as read back from disk
@@ -187,7 +196,7 @@ def _local_round(msg: Message, context: Context, pretrain: bool) -> Message:
     s = load_settings(run_dir)
     k = int(context.node_config["partition-id"])
     r = 0 if pretrain else int(config["server-round"])
-    if (k, r) == (s.fail_client, s.fail_round):
+    if r == s.fail_round and s.fail_client in (k, EVERY_CLIENT):
         raise RuntimeError(f"injected fault: client {k} fails in round {r}")
     train = train_split(s.shards[k])
     folder = client_dir(run_dir, k)
@@ -292,7 +301,8 @@ def serve(grid: Grid, run_dir: Path) -> None:
         msg = _message(grid, nodes[0], PRETRAIN_ACTION, ConfigRecord({"run-dir": str(run_dir)}))
         (reply,) = list(grid.send_and_receive([msg], timeout=s.round_timeout))
         if reply.has_error():
-            raise RuntimeError(f"the coordinator's pretraining failed: {reply.error.reason}")
+            reason = _last_line(reply.error.reason)
+            raise FederationFailed(f"the coordinator's pretraining failed: {reason}", run_dir)
         update = from_record(reply.content["arrays"])
         entry = {"round": 0, "bytes_up": {"0": payload_bytes(reply.content)}, "bytes_down": {}}
         history.append(evaluator.finish_round(run_dir, 0, update, entry, t0))
@@ -321,13 +331,20 @@ def serve(grid: Grid, run_dir: Path) -> None:
             failed[str(part[n])] = f"no reply within {s.round_timeout:.0f} s"
         for k, reason in sorted(failed.items()):
             log.warning("round %d: client %s left out of the average: %s", r, k, reason)
+        if agg is None or not st["bytes_up"]:
+            reasons = "; ".join(f"{k}: {why}" for k, why in sorted(failed.items()))
+            raise FederationFailed(
+                f"round {r}: every drone failed, nothing to average ({reasons}); the "
+                f"{len(history) - 1} rounds before it are kept, a rerun resumes there",
+                run_dir,
+            )
         entry = {
             "round": r,
             "bytes_down": {str(part[n]): b for n, b in st["bytes_down"].items()},
             "bytes_up": {str(part[n]): b for n, b in st["bytes_up"].items()},
             "failed": failed,
         }
-        update = from_record(agg if agg is not None else arrays)
+        update = from_record(agg)
         history.append(evaluator.finish_round(run_dir, r, update, entry, t0))
         save_momentum(run_dir, r, strategy.server_state())
         save_rounds(run_dir, s, history)
@@ -372,10 +389,11 @@ def _discover(grid: Grid, s: FedSettings, run_dir: Path) -> dict[int, int]:
     found: dict[int, int] = {}
     for reply in grid.send_and_receive(msgs, timeout=s.round_timeout):
         if reply.has_error():
-            raise RuntimeError(f"node {reply.metadata.src_node_id}: {reply.error.reason}")
+            why = _last_line(reply.error.reason)
+            raise FederationFailed(f"drone {reply.metadata.src_node_id} failed to start: {why}")
         found[int(reply.content["info"]["partition-id"])] = reply.metadata.src_node_id
     if sorted(found) != list(range(s.n_clients)):
-        raise RuntimeError(f"expected partitions 0..{s.n_clients - 1}, found {sorted(found)}")
+        raise FederationFailed(f"expected partitions 0..{s.n_clients - 1}, found {sorted(found)}")
     return found
 
 

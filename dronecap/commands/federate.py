@@ -47,13 +47,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="also train centralized and single-drone baselines on the same step budget",
     )
     p.add_argument("--eval-views", type=int, default=0, help="test views per round (0: all)")
-    p.add_argument("--round-timeout", type=float, default=3600.0, help="seconds per round")
+    p.add_argument("--round-timeout", type=float, default=3600.0, help="seconds per round (>= 1)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--fail-client",
-        type=int,
+        type=_client_or_all,
         default=-1,
-        help="fault injection: this drone raises in --fail-round (left out of that average)",
+        help="fault injection: this drone raises in --fail-round (left out of that average); "
+        "'all': every drone does (the run stops with an error)",
     )
     p.add_argument("--fail-round", type=int, default=-1)
     p.add_argument(
@@ -67,21 +68,50 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", help="run folder (default: runs/federate in the workspace)")
 
 
+def _client_or_all(text: str) -> int:
+    """``--fail-client``: a drone number, or ``all`` (every drone)."""
+    return -2 if text == "all" else int(text)  # -2: federated.run.EVERY_CLIENT
+
+
+# option -> (minimum, maximum or None), checked before any work
+LIMITS = {
+    "clients": (1, None),
+    "pretrain": (0, None),
+    "local_steps": (1, None),
+    "rounds": (1, None),
+    "eval_views": (0, None),
+    "round_timeout": (1.0, None),
+    "seed": (0, None),
+    "server_lr": (1e-6, None),
+    "server_momentum": (0.0, 0.999),
+    "fail_client": (-2, None),
+    "fail_round": (-1, None),
+    "superlink_port": (1, 65535),
+}
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """Raise InputError (one line) for any option out of its range (:data:`LIMITS`)."""
+    from dronecap.errors import check_option
+
+    for name, (lo, hi) in LIMITS.items():
+        check_option(f"--{name.replace('_', '-')}", getattr(args, name), lo, hi)
+
+
 def run(args: argparse.Namespace) -> int:
     """Shard if needed, run (or resume) the federation, the baselines, and the plot."""
     import dataclasses
 
     from dronecap import workspace
     from dronecap.errors import InputError
+    from dronecap.files import sha256_file
     from dronecap.nerf.config import preset
 
+    check_options(args)
     out = workspace.resolve(args.workdir, args.out, workspace.FEDERATE_RUN).resolve()
     src = workspace.resolve(args.workdir, args.input, workspace.SHARDS)
     if not src.exists():
         raise InputError("no such dataset or shards folder", src)
-    for name in ("pretrain", "local_steps", "rounds", "clients"):
-        if getattr(args, name) < (0 if name == "pretrain" else 1):
-            raise InputError(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
     try:
         cfg = preset(args.preset)
     except KeyError as err:
@@ -109,11 +139,17 @@ def run(args: argparse.Namespace) -> int:
         fail_client=args.fail_client,
         fail_round=args.fail_round,
         seed=args.seed,
+        shard_sha256=[sha256_file(p) for p in shards],
     )
-    if (out / fed.SETTINGS).exists() and fed.load_settings(out) != s:
+    if (out / fed.SETTINGS).exists() and (old := fed.load_settings(out)) != s:
+        what = "settings"
+        if not old.shard_sha256 and dataclasses.replace(old, shard_sha256=s.shard_sha256) == s:
+            what = "no record of its shards' contents (made by an older dronecap)"
+        elif dataclasses.replace(old, shard_sha256=s.shard_sha256) == s:
+            pairs = zip(shards, old.shard_sha256, s.shard_sha256, strict=True)
+            what = f"other shard contents ({', '.join(p.name for p, a, b in pairs if a != b)})"
         raise InputError(
-            "holds a run with other settings: pass --restart to discard it, or another --out",
-            out,
+            f"holds a run with {what}: pass --restart to discard it, or another --out", out
         )
     fed.save_settings(out, s)
     if args.deployment:
@@ -160,7 +196,24 @@ def _shards(src: Path, out: Path, args: argparse.Namespace) -> list[Path]:
         raise InputError("shard files must be client_0.h5 ... client_{K-1}.h5", src)
     if len(files) != args.clients:
         raise InputError(f"holds {len(files)} shards but --clients is {args.clients}", src)
+    _check_shards(files)
     return [p.resolve() for p in files]
+
+
+def _check_shards(files: list[Path]) -> None:
+    """Read every shard before the drones start: a damaged one is one line naming it; each must
+    hold train views, and the coordinator's (client_0) the common test views."""
+    from dronecap.datasets.format import open_dataset
+    from dronecap.errors import InputError
+
+    for k, path in enumerate(files):
+        ds = open_dataset(path, kinds=("shard", "dataset"))
+        if ds.poses is None or ds.intrinsics is None:
+            raise InputError("has no camera poses or intrinsics to train on", path)
+        if not len(ds.indices("train")):
+            raise InputError("holds no train views", path)
+        if k == 0 and not len(ds.indices("test")):
+            raise InputError("holds no test views to score the global model on", path)
 
 
 def _summary(doc: dict) -> None:

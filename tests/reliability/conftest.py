@@ -1,0 +1,132 @@
+"""Small valid files for the reliability tests, and the CLI run in process with its outcome.
+
+The files are a ring of 12 cameras (OpenCV axes) looking at a box at the origin: ``posed.h5``
+(gray 10x12, no split) and ``dataset.h5`` (RGB + alpha, every 4th frame in test), both with
+every field the stages read, so a mutation of any of them can be tried.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import signal
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dronecap.cli import main
+from dronecap.datasets.format import Dataset, Intrinsics, provenance, write_dataset
+
+N, H, W = 12, 10, 12
+AABB = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
+
+
+def ring_poses(n: int = N, radius: float = 3.0, height: float = 0.6) -> np.ndarray:
+    """Camera-to-world [n, 4, 4], OpenCV axes, on a ring about +z looking at the origin."""
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    for i, a in enumerate(np.linspace(0, 2 * np.pi, n, endpoint=False)):
+        eye = np.array([radius * np.cos(a), radius * np.sin(a), height])
+        z = -eye / np.linalg.norm(eye)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        poses[i, :3, :3] = np.stack([x, y, z], 1)
+        poses[i, :3, 3] = eye
+    return poses
+
+
+def small_dataset(kind: str, channels: int) -> Dataset:
+    """A valid file's contents of ``kind`` with ``channels`` image channels."""
+    rng = np.random.default_rng(7)
+    poses = ring_poses()
+    dist = np.linalg.norm(poses[:, :3, 3], axis=1)
+    ds = Dataset(
+        images=rng.integers(0, 256, (N, H, W, channels), dtype=np.uint8),
+        kind=kind,
+        poses=poses,
+        intrinsics=Intrinsics(11.0, 11.0, 6.0, 5.0, W, H),
+        names=[f"frame_{i:03d}.png" for i in range(N)],
+        source_index=np.arange(N) * 3,
+        timestamps=np.arange(N) / 10.0,
+        near_far=np.stack([dist - 1.0, dist + 1.0], 1),
+        aabb=AABB.copy(),
+        normalization=np.eye(4),
+        extra={"sharpness": rng.random(N)},
+        provenance=provenance("test", {"seed": 7}, {}),
+        attrs={"scene": "ring"},
+    )
+    if kind == "dataset":
+        ds.split = np.where(np.arange(N) % 4 == 0, 2, 0).astype(np.int8)
+        ds.alpha = rng.integers(0, 256, (N, H, W), dtype=np.uint8)
+        ds.background = (0.0,) * channels
+    return ds
+
+
+@pytest.fixture(autouse=True)
+def _no_progress(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No progress lines on stderr: the tests count the error lines."""
+    monkeypatch.setenv("DRONECAP_PROGRESS", "off")
+
+
+@pytest.fixture(scope="session")
+def small_files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """{"posed": posed.h5, "dataset": dataset.h5}: small valid files (never modified)."""
+    root = tmp_path_factory.mktemp("small")
+    return {
+        "posed": write_dataset(root / "posed.h5", small_dataset("posed", 1)),
+        "dataset": write_dataset(root / "dataset.h5", small_dataset("dataset", 3)),
+    }
+
+
+@dataclass
+class Outcome:
+    """What a command did: exit code, stderr, and the traceback of an escaped exception."""
+
+    code: int | None
+    err: str
+    crash: str | None = None
+
+    def one_line_error(self, command: str) -> bool:
+        """True when it failed cleanly: exit 1 or 2 (argparse) and one error line for the user
+        (argparse prints its usage before that line)."""
+        lines = [ln for ln in self.err.splitlines() if ln.strip()]
+        return (
+            self.crash is None
+            and self.code in (1, 2)
+            and bool(lines)
+            and lines[-1].startswith(f"dronecap {command}: error: ")
+            and "Traceback" not in self.err
+            and (self.code == 2 or len(lines) == 1)
+        )
+
+
+class Hang(Exception):
+    """A command took longer than its alarm."""
+
+
+def run_cli(argv: list[str], timeout_s: int = 60) -> Outcome:
+    """Run ``dronecap ARGV`` in this process; an escaped exception or SystemExit is caught and
+    kept; a run longer than ``timeout_s`` raises :class:`Hang`."""
+
+    def alarm(signum: int, frame: object) -> None:
+        raise Hang(f"dronecap {' '.join(argv)} ran longer than {timeout_s} s")
+
+    err = io.StringIO()
+    old = signal.signal(signal.SIGALRM, alarm)
+    signal.alarm(timeout_s)
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            code = main(argv)
+        return Outcome(code, err.getvalue())
+    except SystemExit as ex:
+        return Outcome(int(ex.code or 0), err.getvalue())
+    except Hang:
+        raise
+    except BaseException:  # noqa: BLE001  (the point: nothing may escape the CLI)
+        return Outcome(None, err.getvalue(), traceback.format_exc())
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
