@@ -1,9 +1,16 @@
-"""dronecap.camera: the one camera type (intrinsics + lens distortion) every stage uses.
+"""dronecap.camera: the one camera type (intrinsics + lens distortion), calibration files and
+camera calibration.
 
-:class:`Camera` holds fx, fy, cx, cy in pixels of the stored image and a distortion model;
-OpenCV does the projection and undistortion maths.
+- :class:`Camera` holds fx, fy, cx, cy in pixels of the stored image and a distortion model;
+  OpenCV does the projection and undistortion maths (``camera/model.py``).
+- :func:`load_camera` reads every form of known intrinsics (``fx,fy,cx,cy``, the calibration
+  JSON, the simulator's flight.json, OpenCV YAML/XML) into a Camera sized to the frames
+  (``camera/files.py``).
+- ``dronecap calibrate``: :mod:`dronecap.camera.targets` (boards), :mod:`.calibrate` (OpenCV
+  calibration, rejections, warnings), :mod:`.views` (images, video view picking), :mod:`.plot`.
 """
 
+from dronecap.camera.files import load_camera
 from dronecap.camera.model import DISTORTION_PARAMS, Camera
 
-__all__ = ["DISTORTION_PARAMS", "Camera"]
+__all__ = ["DISTORTION_PARAMS", "Camera", "load_camera"]
