@@ -34,6 +34,7 @@ from dronecap.capture.tracks import PAIR_NAMES, WINDOW, FeatureTracker
 from dronecap.errors import InputError
 
 MIN_KEPT = 2  # fewer kept frames leave nothing to reconstruct
+DEFECTS_LISTED = 10  # frames named per defect in the warnings (all are in frames.h5)
 
 
 @dataclass
@@ -105,12 +106,7 @@ class IngestResult:
     def defects(self) -> dict[str, list[int]]:
         """Decoded frame positions of each stream defect: torn, upside_down, frozen,
         unreadable (empty lists omitted)."""
-        out = {}
-        for name in ("torn", "upside_down", "frozen", "unreadable"):
-            at = np.flatnonzero(self.selection.reason == REASONS.index(name))
-            if len(at):
-                out[name] = [int(i) for i in at]
-        return out
+        return {k: [int(i) for i in v] for k, v in _defects(self.selection).items()}
 
     def summary_line(self) -> str:
         """One line: decoded, kept, dropped by reason, speed of the run."""
@@ -203,6 +199,15 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
             "coverage gaps with no usable frame: "
             + ", ".join(f"frames {a}-{b}" for a, b in selection.gaps)
         )
+    for name, at in _defects(selection).items():
+        listed = ", ".join(str(tables["name"][i]) for i in at[:DEFECTS_LISTED])
+        more = f" and {len(at) - DEFECTS_LISTED} more" if len(at) > DEFECTS_LISTED else ""
+        warnings.append(f"{len(at)} {name.replace('_', '-')} frames dropped: {listed}{more}")
+    if telemetry is not None and telemetry.dropped:
+        lost = telemetry.dropped
+        listed = ", ".join(str(f) for f in lost[:DEFECTS_LISTED])
+        more = f" and {len(lost) - DEFECTS_LISTED} more" if len(lost) > DEFECTS_LISTED else ""
+        warnings.append(f"{len(lost)} camera frames lost in transmission: {listed}{more}")
     images = np.stack([small[i] for i in kept])[..., None]
     names = [tables["name"][i] for i in kept]
     return IngestResult(
@@ -291,6 +296,16 @@ def _decode_and_score(
     tables.update(tracker.tables())
     found = pattern[0] if pattern[0] != "auto" else None
     return small, tables, found
+
+
+def _defects(sel: Selection) -> dict[str, np.ndarray]:
+    """Decoded positions [K] of the frames dropped for each stream defect (K > 0 only)."""
+    out = {}
+    for name in ("torn", "upside_down", "frozen", "unreadable"):
+        at = np.flatnonzero(sel.reason == REASONS.index(name))
+        if len(at):
+            out[name] = at
+    return out
 
 
 def _telemetry_tables(t: Telemetry, readable: np.ndarray) -> dict[str, np.ndarray]:
