@@ -1,0 +1,171 @@
+"""A catalogue of bad inputs per command (split, shard, federate), run in process.
+
+Each case must end with one error line naming the problem (argparse's own errors: exit 2 after
+its usage line), before any work starts, and leave no output behind.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dronecap.datasets.format import open_dataset, write_dataset
+from dronecap.datasets.shard import shard_dataset
+from tests.reliability.conftest import run_cli
+
+# A case builds its argv from (small files, a scratch folder) and names a fragment of the message.
+Case = tuple[str, Callable[[dict[str, Path], Path], list[str]], str]
+
+
+def _with_split(files: dict[str, Path], tmp: Path, split: list[int]) -> Path:
+    ds = open_dataset(files["dataset"])
+    ds.split = np.resize(np.array(split, np.int8), ds.n)
+    return write_dataset(tmp / "custom.h5", ds)
+
+
+def _one_frame(files: dict[str, Path], tmp: Path) -> Path:
+    return write_dataset(tmp / "one.h5", open_dataset(files["posed"]).subset([0]))
+
+
+def _frames_only(files: dict[str, Path], tmp: Path) -> Path:
+    ds = open_dataset(files["posed"])
+    ds = dataclasses.replace(ds, kind="frames", poses=None, near_far=None, aabb=None)
+    return write_dataset(tmp / "frames.h5", ds)
+
+
+def _text_file(tmp: Path) -> Path:
+    (tmp / "notes.h5").write_text("not a dataset\n")
+    return tmp / "notes.h5"
+
+
+SPLIT: list[Case] = [
+    ("every 1", lambda f, t: [str(f["posed"]), "--every", "1"], "--every must be >= 2"),
+    ("every -3", lambda f, t: [str(f["posed"]), "--every", "-3"], "--every must be >= 2"),
+    ("every x", lambda f, t: [str(f["posed"]), "--every", "x"], "invalid int value"),
+    ("missing input", lambda f, t: [str(t / "nope.h5")], "no such file"),
+    ("input is a folder", lambda f, t: [str(t)], "is a folder"),
+    ("input is text", lambda f, t: [str(_text_file(t))], "not a readable HDF5 file"),
+    ("frames, no poses", lambda f, t: [str(_frames_only(f, t))], "expected one of"),
+    ("one frame", lambda f, t: [str(_one_frame(f, t))], "leaves no train frame"),
+    ("all test", lambda f, t: [str(_with_split(f, t, [2]))], "leaves no train frame"),
+    ("all train", lambda f, t: [str(_with_split(f, t, [0]))], "leaves no test frame"),
+]
+
+SHARD: list[Case] = [
+    ("clients 0", lambda f, t: [str(f["dataset"]), "--clients", "0"], "--clients must be >= 1"),
+    ("clients -1", lambda f, t: [str(f["dataset"]), "--clients", "-1"], "--clients must be"),
+    ("seed -1", lambda f, t: [str(f["dataset"]), "--seed", "-1"], "--seed must be >= 0"),
+    ("scheme", lambda f, t: [str(f["dataset"]), "--scheme", "rings"], "--scheme must be one of"),
+    ("too many", lambda f, t: [str(f["dataset"]), "--clients", "50"], "need at least 50 train"),
+    ("posed input", lambda f, t: [str(f["posed"])], "expected one of ['dataset']"),
+    ("no test", lambda f, t: [str(_with_split(f, t, [0]))], "has no test frames"),
+    ("missing input", lambda f, t: [str(t / "nope.h5")], "no such file"),
+]
+
+
+@pytest.fixture(scope="module")
+def shards(small_files: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two IID shards of the small dataset (never modified)."""
+    return shard_dataset(small_files["dataset"], tmp_path_factory.mktemp("sh") / "shards", 2, "iid")
+
+
+def _shard_copy(shards: Path, tmp: Path, damage: str) -> Path:
+    out = tmp / "shards"
+    shutil.copytree(shards, out)
+    target = out / "client_1.h5"
+    if damage == "flip":
+        b = bytearray(target.read_bytes())
+        b[len(b) // 2] ^= 0x10
+        target.write_bytes(bytes(b))
+    elif damage == "missing":
+        target.unlink()
+    elif damage == "renamed":
+        target.rename(out / "client_7.h5")
+    elif damage == "no_train":
+        ds = open_dataset(target)
+        ds.split[:] = 2
+        write_dataset(target, ds)
+    return out
+
+
+def federate_cases(shards: Path) -> list[Case]:
+    ok = [str(shards), "--clients", "2", "--preset", "test"]
+
+    def opt(*extra: str) -> Callable[[dict[str, Path], Path], list[str]]:
+        return lambda f, t: [*ok, "--out", str(t / "run"), *extra]
+
+    def damaged(kind: str) -> Callable[[dict[str, Path], Path], list[str]]:
+        return lambda f, t: [str(_shard_copy(shards, t, kind)), *ok[1:], "--out", str(t / "run")]
+
+    return [
+        ("round-timeout 0", opt("--round-timeout", "0"), "--round-timeout must be >= 1"),
+        ("round-timeout nan", opt("--round-timeout", "nan"), "--round-timeout must be >= 1"),
+        ("rounds 0", opt("--rounds", "0"), "--rounds must be >= 1"),
+        ("local-steps 0", opt("--local-steps", "0"), "--local-steps must be >= 1"),
+        ("pretrain -1", opt("--pretrain", "-1"), "--pretrain must be >= 0"),
+        ("clients 0", opt("--clients", "0"), "--clients must be >= 1"),
+        ("seed -1", opt("--seed", "-1"), "--seed must be >= 0"),
+        ("eval-views -1", opt("--eval-views", "-1"), "--eval-views must be >= 0"),
+        ("server-lr 0", opt("--server-lr", "0"), "--server-lr must be"),
+        ("server-lr nan", opt("--server-lr", "nan"), "--server-lr must be"),
+        ("momentum 1", opt("--server-momentum", "1"), "--server-momentum must be"),
+        ("momentum -0.1", opt("--server-momentum", "-0.1"), "--server-momentum must be"),
+        ("fail-client -3", opt("--fail-client", "-3"), "--fail-client must be"),
+        ("port 70000", opt("--superlink-port", "70000"), "--superlink-port must be"),
+        ("preset", opt("--preset", "nope"), "nope"),
+        ("dtype", opt("--transfer-dtype", "fp8"), "invalid choice"),
+        ("missing input", lambda f, t: [str(t / "nope"), "--out", str(t / "run")], "no such"),
+        ("clients 3 of 2", opt("--clients", "3"), "holds 2 shards but --clients is 3"),
+        ("corrupt shard", damaged("flip"), "client_1.h5"),
+        ("missing shard", damaged("missing"), "holds 1 shards"),
+        ("gap in shards", damaged("renamed"), "client_0.h5 ... client_{K-1}.h5"),
+        ("shard without train", damaged("no_train"), "client_1.h5: holds no train views"),
+    ]
+
+
+def _check(command: str, argv: list[str], message: str, tmp: Path) -> None:
+    before = {p for p in tmp.rglob("*")}
+    res = run_cli([command, *argv])
+    assert res.one_line_error(command), res
+    assert message in res.err.splitlines()[-1], res.err
+    made = {p for p in tmp.rglob("*")} - before
+    assert not [p for p in made if p.name != "run"], f"left behind: {sorted(made)}"
+
+
+@pytest.mark.parametrize(("name", "argv", "message"), SPLIT, ids=[c[0] for c in SPLIT])
+def test_split_catalogue(small_files, tmp_path: Path, name, argv, message) -> None:
+    args = argv(small_files, tmp_path)
+    _check("split", [*args, "-o", str(tmp_path / "out.h5")], message, tmp_path)
+
+
+@pytest.mark.parametrize(("name", "argv", "message"), SHARD, ids=[c[0] for c in SHARD])
+def test_shard_catalogue(small_files, tmp_path: Path, name, argv, message) -> None:
+    args = argv(small_files, tmp_path)
+    _check("shard", [*args, "-o", str(tmp_path / "shards_out")], message, tmp_path)
+
+
+@pytest.mark.parametrize("index", range(22))
+def test_federate_catalogue(small_files, shards: Path, tmp_path: Path, index: int) -> None:
+    cases = federate_cases(shards)
+    assert len(cases) == 22
+    name, argv, message = cases[index]
+    _check("federate", argv(small_files, tmp_path), message, tmp_path)
+
+
+def test_federate_refuses_a_run_folder_made_from_other_shards(
+    small_files: dict[str, Path], tmp_path: Path
+) -> None:
+    """Same paths, other contents (re-sharded with another seed): not resumed silently."""
+    src = tmp_path / "shards"
+    shard_dataset(small_files["dataset"], src, 2, "iid", seed=0)
+    argv = [str(src), "--clients", "2", "--preset", "test", "--out", str(tmp_path / "run")]
+    assert run_cli(["federate", *argv, "--deployment"]).code == 0
+    shard_dataset(small_files["dataset"], src, 2, "iid", seed=5)
+    res = run_cli(["federate", *argv, "--deployment"])
+    assert res.one_line_error("federate"), res
+    assert "other shard contents (client_0.h5, client_1.h5)" in res.err
