@@ -13,7 +13,9 @@ Accepted forms (pixels of the calibrated frames, OpenCV's distortion order
   ``"intrinsics"``;
 - OpenCV ``FileStorage`` YAML or XML (``.yml``, ``.yaml``, ``.xml``): ``camera_matrix``,
   ``distortion_coefficients``, ``image_width``, ``image_height`` (what OpenCV's calibration
-  samples write); a fisheye one says so with ``fisheye_model: 1`` or ``model: fisheye``.
+  samples write); a fisheye one says so with ``fisheye_model: 1`` or ``model: fisheye``. ROS
+  ``camera_info`` YAML (plain ``{rows, cols, data}`` matrices, ``distortion_model``
+  ``plumb_bob`` | ``rational_polynomial`` | ``equidistant``) is read the same way.
 
 Pixel convention: dronecap (like COLMAP) puts the centre of pixel (u, v) at (u + 0.5, v + 0.5);
 OpenCV puts it at (u, v). ``fx, fy, cx, cy`` keys are taken as dronecap's; a matrix (``K`` /
@@ -41,6 +43,7 @@ from dronecap.errors import InputError
 OPENCV_STORAGE_SUFFIXES = (".yml", ".yaml", ".xml")
 ASPECT_TOLERANCE_PX = 1.0  # sizes of the same aspect may differ by this much after rounding
 MODELS = ("pinhole", "fisheye")  # "model" of a calibration JSON (OpenCV's two lens families)
+ROS_MODELS = {"plumb_bob": "pinhole", "rational_polynomial": "pinhole", "equidistant": "fisheye"}
 DRONECAP_OFFSET = 0.5  # dronecap's pixel (u, v) has its centre at (u + 0.5, v + 0.5)
 OPENCV_OFFSET = 0.0  # OpenCV's at (u, v)
 
@@ -149,19 +152,31 @@ def _from_opencv_storage(path: Path, default_size: tuple[int, int]) -> Camera:
     try:
         if not fs.isOpened():
             raise InputError("not an OpenCV YAML/XML file OpenCV can open", path)
-        k = fs.getNode("camera_matrix").mat()
+        k = _storage_matrix(fs.getNode("camera_matrix"))
         if k is None or k.size != 9:
             raise InputError("has no 3x3 camera_matrix", path)
-        dist = fs.getNode("distortion_coefficients").mat()
+        dist = _storage_matrix(fs.getNode("distortion_coefficients"))
         w, h = (int(fs.getNode(n).real()) for n in ("image_width", "image_height"))
-        model_node = fs.getNode("model")
-        model = model_node.string().lower() if model_node.isString() else "pinhole"
+        model = "pinhole"
+        for name in ("model", "distortion_model"):
+            node = fs.getNode(name)
+            if node.isString():
+                model = ROS_MODELS.get(node.string().lower(), node.string().lower())
         if fs.getNode("fisheye_model").real() != 0:
             model = "fisheye"
     finally:
         fs.release()
     size = (w, h) if w > 0 and h > 0 else default_size
     return _camera(_to_dronecap(k, OPENCV_OFFSET), [] if dist is None else dist, model, size, path)
+
+
+def _storage_matrix(node) -> np.ndarray | None:
+    """A matrix node of a FileStorage: OpenCV's ``!!opencv-matrix`` or ROS camera_info's plain
+    map ``{rows, cols, data: [...]}``; None when absent."""
+    if node.isMap() and node.getNode("dt").empty() and not node.getNode("data").empty():
+        data = node.getNode("data")
+        return np.array([data.at(i).real() for i in range(data.size())], float)
+    return None if node.empty() else node.mat()
 
 
 def _camera(k, dist, model: str, size: tuple[int, int], path: Path) -> Camera:
@@ -183,7 +198,7 @@ def _camera(k, dist, model: str, size: tuple[int, int], path: Path) -> Camera:
 
 def _to_dronecap(k: np.ndarray, offset: float) -> np.ndarray:
     """K [3, 3] of a file whose pixel centres sit at integer + ``offset`` -> dronecap's K."""
-    k = np.array(k, float)
+    k = np.array(k, float).reshape(3, 3)
     k[:2, 2] += DRONECAP_OFFSET - offset
     return k
 

@@ -185,8 +185,9 @@ def test_aruco_grid_through_a_known_pinhole(tmp_path):
         cv2.imwrite(names[-1], view)
     rc, got = calibrate_cli(
         tmp_path, *names, "--pattern", "aruco-grid", "--board", "4x5", "--marker", "0.04",
-        "--gap", "0.01",
+        "--gap", "0.01", "--plot", str(tmp_path / "calib.png"),
     )  # fmt: skip
+    assert cv2.imread(str(tmp_path / "calib.png")) is not None  # the coverage/error plot
     assert rc == 0 and len(got["views_used"]) == 6 and got["target"] == board.record()
     assert got["fx"] == pytest.approx(400.0, rel=0.01) and got["fy"] == pytest.approx(400, rel=0.01)
     assert got["cx"] == pytest.approx(330.0, abs=1.5) and got["cy"] == pytest.approx(236.0, abs=1.5)

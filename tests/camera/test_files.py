@@ -108,3 +108,20 @@ def test_bad_files_are_one_clear_error(tmp_path):
     yml.write_text("not: [yaml")
     with pytest.raises(InputError, match="OpenCV"):
         load_camera(str(yml), (640, 480))
+
+
+def test_ros_camera_info_yaml(tmp_path):
+    """ROS camera_info YAML: plain {rows, cols, data} maps, OpenCV pixel convention."""
+    path = tmp_path / "himax.yaml"
+    path.write_text(
+        "image_width: 324\nimage_height: 244\ncamera_name: himax\n"
+        "camera_matrix:\n  rows: 3\n  cols: 3\n"
+        "  data: [183.0, 0.0, 160.0, 0.0, 183.5, 150.0, 0.0, 0.0, 1.0]\n"
+        "distortion_model: plumb_bob\n"
+        "distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [-0.08, 0.01, 0.0, 0.0, 0.0]\n"
+    )
+    cam, origin = load_camera(str(path), (324, 244))
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (183.0, 183.5, 160.5, 150.5)
+    assert cam.opencv_coeffs()[:5].tolist() == [-0.08, 0.01, 0.0, 0.0, 0.0]
+    path.write_text(path.read_text().replace("plumb_bob", "equidistant").replace(", 0.0]", "]"))
+    assert load_camera(str(path), (324, 244))[0].is_fisheye
