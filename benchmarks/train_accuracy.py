@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> None:
         "ms_per_step_median": float(np.median(ms)),
         "render_seconds": render_s,
         "parameters": tr.parameter_count(),
-        "n_max": tr.n_max,
+        "n_max": tr.cfg.n_max,
         "threads": args.threads,
         "load_average": os.getloadavg()[0],
         "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},

@@ -13,7 +13,6 @@ the C++ kernels vs the PyTorch reference. Medians of --repeats windows.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import time
 from pathlib import Path
@@ -24,17 +23,6 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
-
-
-@contextlib.contextmanager
-def patched_thresholds(trainer, thresholds: dict):
-    """``trainer.render_rays`` with other early-stop ``thresholds`` while the block runs."""
-    plain = trainer.render_rays
-    trainer.render_rays = lambda o, d, bg: plain(o, d, bg, **thresholds)
-    try:
-        yield
-    finally:
-        del trainer.render_rays  # back to the class method
 
 
 def main() -> None:
@@ -100,11 +88,7 @@ def main() -> None:
             images = []
             for i in test:
                 t0, c0 = time.perf_counter(), time.process_time()
-                if thresholds:
-                    with patched_thresholds(tr, thresholds):
-                        images.append(tr.render(ds.poses[i], ds.intrinsics))
-                else:
-                    images.append(tr.render(ds.poses[i], ds.intrinsics))
+                images.append(tr.render(ds.poses[i], ds.intrinsics, **thresholds))
                 wall.append(1000 * (time.perf_counter() - t0))
                 cpu.append(1000 * (time.process_time() - c0))
         key = f"{tr.step}"

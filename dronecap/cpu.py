@@ -34,3 +34,11 @@ def add_threads_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--threads", type=int, help="torch CPU threads (default: the cores not already busy)"
     )
+
+
+def check_threads(requested: int | None) -> None:
+    """InputError unless ``--threads`` is unset or a positive count (checked before any work)."""
+    from dronecap.errors import InputError
+
+    if requested is not None and requested < 1:
+        raise InputError(f"--threads takes a positive number of threads, got {requested}")

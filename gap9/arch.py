@@ -13,10 +13,10 @@ is what reproduces Table II (see docs/gap9.md), so ``hash_rows="paper"`` is the 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 from dronecap.gap9.platform import Numerics
+from dronecap.nerf import levels
 from dronecap.nerf.config import TrainConfig
 
 # --- multiresolution hash encoding, per level and per cell corner ----------------------------
@@ -43,13 +43,9 @@ GRID_CELL_OPS = 2  # per cell and update: sum for the mean density, re-derive th
 
 
 def level_resolutions(cfg: TrainConfig) -> list[int]:
-    """Cells per axis of each level, ``floor(n_min * b^l)`` (the trainer's hashgrid convention).
-
-    Uses ``cfg.n_max`` (an ``auto_n_max`` run sizes it from its dataset; only ``"stored"``
-    hash-row counting depends on it).
-    """
-    growth = math.exp(math.log(cfg.n_max / cfg.n_min) / (cfg.levels - 1)) if cfg.levels > 1 else 1
-    return [int(math.floor(cfg.n_min * growth**lvl * (1 + 1e-9))) for lvl in range(cfg.levels)]
+    """Cells per axis of each level, by the trainer's own formula
+    (:func:`dronecap.nerf.levels.level_resolutions`) at ``cfg.n_max`` (the resolved value)."""
+    return levels.level_resolutions(cfg.levels, cfg.n_min, cfg.n_max)
 
 
 def hash_rows_per_level(cfg: TrainConfig, mode: str = "paper") -> list[int]:

@@ -15,6 +15,7 @@ counts) or ``KiB``/``MiB``/``GiB`` (powers of 2, as RAM sizes are).
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -121,6 +122,29 @@ class Platform:
 
 
 _BYTE_FIELDS = ("l1_bytes", "l2_bytes", "l3_bytes", "l1_reserved_bytes")
+_MAY_BE_ZERO = ("l1_reserved_bytes",)
+
+
+def _check_numbers(obj: Any, where: str = "") -> None:
+    """ValueError naming the first numeric field of a Platform/Numerics/Calibration that is
+    not a finite positive number of the right kind (``l1_reserved_bytes`` may be 0)."""
+    for f in dataclasses.fields(obj):
+        value, default = getattr(obj, f.name), f.default
+        name = f"{where}{f.name}"
+        if dataclasses.is_dataclass(value):
+            _check_numbers(value, f"{name}.")
+            continue
+        if isinstance(default, bool) or not isinstance(default, int | float):
+            if isinstance(default, str) and not isinstance(value, str):
+                raise ValueError(f"{name} must be text, got {value!r}")
+            continue
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        ok = ok and math.isfinite(value) and (isinstance(default, float) or isinstance(value, int))
+        if not ok:
+            kind = "an integer" if isinstance(default, int) else "a number"
+            raise ValueError(f"{name} must be {kind}, got {value!r}")
+        if value < 0 or (value == 0 and f.name not in _MAY_BE_ZERO):
+            raise ValueError(f"{name} must be positive, got {value!r}")
 
 
 def platform_from_dict(data: dict[str, Any], base: Platform | None = None) -> Platform:
@@ -137,6 +161,8 @@ def platform_from_dict(data: dict[str, Any], base: Platform | None = None) -> Pl
     for key, value in data.items():
         if key in ("numerics", "calibration"):
             sub = getattr(base, key)
+            if value is not None and not isinstance(value, dict):
+                raise ValueError(f"{key} must be a mapping of fields, got {value!r}")
             sub_known = {f.name for f in dataclasses.fields(sub)}
             bad = set(value or {}) - sub_known
             if bad:
@@ -149,6 +175,7 @@ def platform_from_dict(data: dict[str, Any], base: Platform | None = None) -> Pl
     platform = dataclasses.replace(base, **changes)
     if platform.hash_rows not in ("paper", "stored"):
         raise ValueError(f"hash_rows must be 'paper' or 'stored', got {platform.hash_rows!r}")
+    _check_numbers(platform)
     return platform
 
 
@@ -161,7 +188,12 @@ def load_platform(path: str | Path | None = None) -> Platform:
     import yaml
 
     p = Path(path) if path is not None else DEFAULT_PLATFORM
-    data = yaml.safe_load(p.read_text())
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as err:
+        raise ValueError(f"{p}: not YAML ({str(err).splitlines()[0]})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{p}: not a text file") from None
     if not isinstance(data, dict):
         raise ValueError(f"{p}: expected a mapping of platform fields")
     return platform_from_dict(data)

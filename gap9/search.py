@@ -16,11 +16,10 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from dronecap.gap9.model import cost_report
 from dronecap.gap9.platform import Platform
-from dronecap.nerf.config import TrainConfig, preset
+from dronecap.nerf.config import TrainConfig, config_from_dict, preset
 
 # The sweep: batch B, log2(T), image side, occupancy grid side, MLP width, hash levels.
 SEARCH_GRID: dict[str, tuple] = {
@@ -31,48 +30,6 @@ SEARCH_GRID: dict[str, tuple] = {
     "hidden": (32, 64),
     "levels": (8, 16),
 }
-
-
-def config_from_dict(data: dict[str, Any], base: TrainConfig | None = None) -> TrainConfig:
-    """A TrainConfig from a (JSON) dict; unknown keys are ignored, lists become tuples."""
-    base = base or TrainConfig()
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
-    clean = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k in known}
-    return dataclasses.replace(base, **clean)
-
-
-def parse_set(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
-    """Apply ``field=value`` overrides, converting each value to the field's current type.
-
-    Raises ValueError naming the bad assignment (unknown field, no '=', unconvertible value).
-    """
-    changes: dict[str, Any] = {}
-    for item in assignments:
-        if "=" not in item:
-            raise ValueError(f"--set expects field=value, got {item!r}")
-        key, text = (s.strip() for s in item.split("=", 1))
-        if not hasattr(cfg, key):
-            raise ValueError(f"--set: unknown field {key!r}")
-        current = getattr(cfg, key)
-        try:
-            if isinstance(current, bool):
-                if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
-                    raise ValueError(text)
-                value: Any = text.lower() in ("true", "1", "yes")
-            elif isinstance(current, int):
-                value = int(float(text)) if float(text).is_integer() else int(text)
-            elif isinstance(current, float):
-                value = float(text)
-            elif isinstance(current, tuple):
-                value = tuple(float(x) for x in text.split(","))
-            else:
-                value = text
-        except ValueError as err:
-            raise ValueError(
-                f"--set {key}: cannot read {text!r} as {type(current).__name__}"
-            ) from err
-        changes[key] = value
-    return dataclasses.replace(cfg, **changes)
 
 
 @dataclass

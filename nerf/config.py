@@ -1,12 +1,18 @@
 """Trainer settings: one dataclass, and the named presets of the paper's Table II in one registry.
 
 Every field is overridable from the CLI (``dronecap train --set field=value`` or the generated
-``--field`` options) and from ``pipelines.yaml``. The GAP9 cost model reads the same dataclass.
+``--field`` options) and from ``pipelines.yaml``; :func:`apply_sets` is the one ``--set`` parser
+(the GAP9 cost model's ``--set`` uses it too) and :func:`config_from_dict` the one way back from
+JSON. :func:`problems` range-checks every field before any work starts. The trainer never uses
+a config as given: :func:`dronecap.nerf.resolve.resolve` fills in what its dataset decides
+(``n_max`` when auto-sized, channels, resolution, image count) and every consumer (trainer, run
+folder, cost report) reads that resolved config.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,8 +32,8 @@ class TrainConfig:
     features: int = 2  # F per level
     log2_hashmap: int = 13  # log2(T), entries per level
     n_min: int = 16  # coarsest grid resolution (cells per axis)
-    n_max: int = 2048  # finest grid resolution; ignored when auto_n_max
-    auto_n_max: bool = False  # size n_max to the pixel footprint over the scene (see field.py)
+    n_max: int = 2048  # finest grid resolution; replaced when resolved if auto_n_max
+    auto_n_max: bool = False  # resolve n_max to the pixel footprint over the scene (resolve.py)
     # --- MLPs -----------------------------------------------------------------------------
     hidden: int = 64  # width of both MLPs
     density_layers: int = 1  # hidden layers of the density MLP
@@ -51,8 +57,8 @@ class TrainConfig:
     lr_final_ratio: float = 0.03
     # --- numerics -------------------------------------------------------------------------
     precision: str = "fp32"  # "fp32", "fp16" or "bf16" storage of hash table and activations
-    # --- data as the paper describes it (the trainer reads the real values from the dataset;
-    #     the GAP9 cost model uses these when no dataset is given) -----------------------------
+    # --- data as the paper describes it (resolving against a dataset replaces them by the
+    #     dataset's values; the GAP9 cost model uses these when no dataset is given) ------------
     resolution: int = 160  # image side in pixels
     train_images: int = 100  # images stored for training
     channels: int = 3  # 1 gray, 3 RGB
@@ -131,13 +137,134 @@ def parse_field(name: str, text: str) -> Any:
             raise ValueError(f"{name} takes true or false, got {text!r}")
         return low in ("true", "1", "yes")
     if isinstance(default, tuple):
-        parts = [float(p) for p in text.split(",")]
-        if len(parts) != len(default):
-            raise ValueError(f"{name} takes {len(default)} comma-separated numbers, got {text!r}")
-        return tuple(parts)
-    if isinstance(default, int):
-        return int(float(text)) if "e" in text.lower() else int(text)
-    return type(default)(text)
+        kind = f"{len(default)} comma-separated numbers"
+    else:
+        kind = "an integer" if isinstance(default, int) else "a number"
+    try:
+        if isinstance(default, tuple):
+            parts = tuple(float(p) for p in text.split(","))
+            if len(parts) == len(default):
+                return parts
+        elif isinstance(default, int):
+            number = float(text)
+            if number.is_integer():
+                return int(number)
+        elif isinstance(default, float):
+            return float(text)
+        else:
+            return text.strip()
+    except (ValueError, OverflowError):
+        pass
+    raise ValueError(f"{name} takes {kind}, got {text!r}")
+
+
+def apply_sets(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
+    """``cfg`` with ``FIELD=VALUE`` overrides applied (``--set``; dashes in names allowed).
+
+    Raises ValueError naming the bad assignment (no '=', unknown field, unreadable value).
+    """
+    changes: dict[str, Any] = {}
+    for item in assignments:
+        if "=" not in item:
+            raise ValueError(f"--set takes FIELD=VALUE, got {item!r}")
+        key, text = item.split("=", 1)
+        key = key.strip().replace("-", "_")
+        changes[key] = parse_field(key, text.strip())
+    return cfg.replace(**changes)
+
+
+def config_from_dict(data: dict[str, Any]) -> TrainConfig:
+    """The TrainConfig a JSON dict describes (``dataclasses.asdict`` of one, as written in
+    run.json, metrics.json and checkpoints): missing fields take their defaults, keys that are
+    not fields are ignored, lists become tuples. ValueError when a value has the wrong type."""
+    fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
+    defaults = TrainConfig()
+    clean: dict[str, Any] = {}
+    for k, v in data.items():
+        if k not in fields:
+            continue
+        want = getattr(defaults, k)
+        if isinstance(want, tuple) and isinstance(v, list | tuple):
+            v = tuple(float(x) for x in v)
+        ok = (
+            isinstance(v, bool)
+            if isinstance(want, bool)
+            else isinstance(v, type(want))
+            and not isinstance(v, bool)
+            or (isinstance(want, float) and isinstance(v, int) and not isinstance(v, bool))
+        )
+        if not ok:
+            raise ValueError(f"config field {k} has {v!r}, expected a {type(want).__name__}")
+        clean[k] = float(v) if isinstance(want, float) else v
+    return TrainConfig(**clean)
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+# field -> (test, what it must be); tests take the value and the whole config
+_RULES: dict[str, tuple[Any, str]] = {
+    "steps": (lambda x, c: x >= 0, ">= 0"),
+    "images_per_step": (lambda x, c: x >= 1, ">= 1"),
+    "batch_samples": (lambda x, c: x >= 1, ">= 1"),
+    "tile_samples": (lambda x, c: x >= 1, ">= 1"),
+    "seed": (lambda x, c: x >= 0, ">= 0"),
+    "levels": (lambda x, c: 1 <= x <= 64, "in 1..64"),
+    "features": (lambda x, c: 1 <= x <= 64, "in 1..64"),
+    "log2_hashmap": (lambda x, c: 1 <= x <= 26, "in 1..26"),
+    "n_min": (lambda x, c: x >= 1, ">= 1"),
+    "n_max": (lambda x, c: c.auto_n_max or x >= c.n_min, ">= n_min"),
+    "hidden": (lambda x, c: x >= 1, ">= 1"),
+    "density_layers": (lambda x, c: x >= 0, ">= 0"),
+    "color_layers": (lambda x, c: x >= 0, ">= 0"),
+    "geo_features": (lambda x, c: x >= 1, ">= 1 (the first one is the density)"),
+    "sh_degree": (lambda x, c: 1 <= x <= 4, "in 1..4"),
+    "grid_res": (lambda x, c: 1 <= x <= 1024, "in 1..1024"),
+    "grid_decay": (lambda x, c: 0 < x <= 1, "in (0, 1]"),
+    "grid_threshold": (lambda x, c: x >= 0, ">= 0"),
+    "grid_warmup": (lambda x, c: x >= 0, ">= 0"),
+    "grid_every": (lambda x, c: x >= 1, ">= 1"),
+    "march_steps": (lambda x, c: x >= 1, ">= 1"),
+    "max_samples_per_ray": (lambda x, c: x >= 1, ">= 1"),
+    "lr": (lambda x, c: x > 0, "> 0"),
+    "eps": (lambda x, c: x > 0, "> 0"),
+    "weight_decay": (lambda x, c: x >= 0, ">= 0"),
+    "lr_final_ratio": (lambda x, c: x > 0, "> 0"),
+    "resolution": (lambda x, c: x >= 1, ">= 1"),
+    "train_images": (lambda x, c: x >= 0, ">= 0"),
+    "channels": (lambda x, c: x >= 1, ">= 1"),
+}
+LR_SCHEDULES = ("exp", "constant")
+PRECISIONS = ("fp32", "fp16", "bf16")
+
+
+def problems(cfg: TrainConfig) -> list[str]:
+    """What is wrong with ``cfg``, one line per field (empty when every field is in range):
+    wrong types, NaN or infinite numbers, values out of range, unknown names."""
+    out = []
+    for f in dataclasses.fields(TrainConfig):
+        v, want = getattr(cfg, f.name), getattr(TrainConfig(), f.name)
+        if isinstance(want, bool):
+            if not isinstance(v, bool):
+                out.append(f"{f.name} must be true or false, got {v!r}")
+        elif isinstance(want, int | float):
+            if not _finite(v) or (isinstance(want, int) and not isinstance(v, int)):
+                kind = "an integer" if isinstance(want, int) else "a finite number"
+                out.append(f"{f.name} must be {kind}, got {v!r}")
+            elif f.name in _RULES and not _RULES[f.name][0](v, cfg):
+                out.append(f"{f.name} must be {_RULES[f.name][1]}, got {v!r}")
+    if not (
+        isinstance(cfg.betas, tuple)
+        and len(cfg.betas) == 2
+        and all(_finite(b) and 0 <= b < 1 for b in cfg.betas)
+    ):
+        out.append(f"betas must be two numbers in [0, 1), got {cfg.betas!r}")
+    if cfg.lr_schedule not in LR_SCHEDULES:
+        out.append(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg.lr_schedule!r}")
+    if cfg.precision not in PRECISIONS:
+        out.append(f"precision must be one of {', '.join(PRECISIONS)}, got {cfg.precision!r}")
+    return out
 
 
 def add_config_arguments(parser: Any) -> None:
@@ -166,14 +293,9 @@ def add_config_arguments(parser: Any) -> None:
 
 def config_from_args(args: Any) -> TrainConfig:
     """The TrainConfig that :func:`add_config_arguments` options describe (ValueError/KeyError
-    on unknown presets, fields or unparsable values)."""
-    cfg = preset(args.preset)
+    on unknown presets, fields or unparsable values; not range-checked: see :func:`problems`)."""
+    cfg = apply_sets(preset(args.preset), args.set)
     changes: dict[str, Any] = {}
-    for item in args.set:
-        if "=" not in item:
-            raise ValueError(f"--set takes FIELD=VALUE, got {item!r}")
-        k, v = item.split("=", 1)
-        changes[k.strip().replace("-", "_")] = parse_field(k.strip().replace("-", "_"), v)
     for f in dataclasses.fields(TrainConfig):
         text = getattr(args, f"cfg_{f.name}", None)
         if text is not None:

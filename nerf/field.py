@@ -6,8 +6,6 @@ The colour head has as many channels as the data (1 gray, 3 RGB).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 from torch import Tensor, nn
@@ -37,22 +35,6 @@ def trunc_exp(x: Tensor) -> Tensor:
     return torch.exp(x.clamp(-MAX_LOG_DENSITY, MAX_LOG_DENSITY))
 
 
-def auto_n_max(aabb: np.ndarray, near: float, focal: float) -> int:
-    """Finest useful grid resolution: AABB extent over the pixel footprint at distance ``near``.
-
-    Args:
-        aabb: [2, 3] scene bounds (scene units).
-        near: typical camera-to-surface distance (scene units), e.g. the mean near distance.
-        focal: focal length in pixels.
-
-    Returns:
-        cells per axis (at least 16), the extent of the largest AABB side in pixel footprints.
-    """
-    extent = float(np.max(aabb[1] - aabb[0]))
-    footprint = max(near, 1e-6) / focal
-    return max(16, int(math.ceil(extent / footprint)))
-
-
 def _mlp(n_in: int, hidden: int, layers: int, n_out: int) -> nn.Sequential:
     """Bias-free ReLU MLP with ``layers`` hidden layers of ``hidden`` units (as tcnn's)."""
     mods: list[nn.Module] = []
@@ -68,22 +50,22 @@ class Field(nn.Module):
     """Hash grid + density MLP (density, geometry features) + colour MLP on SH of directions.
 
     Args:
-        cfg: levels, features, log2_hashmap, n_min, hidden, layer counts, geo_features,
-            sh_degree, precision.
+        cfg: levels, features, log2_hashmap, n_min, n_max, hidden, layer counts, geo_features,
+            sh_degree, precision; a resolved config (``n_max`` is used as it stands, see
+            :mod:`nerf.resolve`).
         channels: colour channels C of the head (1 or 3, or any other count).
         aabb: [2, 3] bounds in scene units; points are normalised to the unit cube over it.
-        n_max: finest hash-grid resolution (cfg.n_max or the auto value).
         backend: hash-grid backend ("auto", "cpp", "torch", "compile").
     """
 
     def __init__(
-        self, cfg: TrainConfig, channels: int, aabb: np.ndarray, n_max: int, backend: str = "auto"
+        self, cfg: TrainConfig, channels: int, aabb: np.ndarray, backend: str = "auto"
     ) -> None:
         super().__init__()
         self.dtype = storage_dtype(cfg.precision)
         self.channels = channels
         self.encoding = HashGrid(
-            cfg.levels, cfg.features, cfg.log2_hashmap, cfg.n_min, n_max, backend, self.dtype
+            cfg.levels, cfg.features, cfg.log2_hashmap, cfg.n_min, cfg.n_max, backend, self.dtype
         )
         self.density_mlp = _mlp(
             self.encoding.out_dim, cfg.hidden, cfg.density_layers, cfg.geo_features

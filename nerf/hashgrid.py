@@ -2,8 +2,8 @@
 
 Conventions (the C++ kernel in ``csrc/hashgrid.cpp`` follows the same ones exactly):
 
-- Level ``l`` has ``res_l = floor(n_min * b**l)`` cells per axis, ``b = exp(ln(n_max/n_min)/(L-1))``
-  (``b = 1`` for one level); its corner grid has ``res_l + 1`` points per axis.
+- Level ``l`` has ``res_l`` cells per axis (:func:`nerf.levels.level_resolutions`, the formula
+  shared with the GAP9 cost model); its corner grid has ``res_l + 1`` points per axis.
 - A point ``x`` in ``[0, 1]^3`` (coordinates outside are clamped, NaN counts as 0) is scaled to
   ``p = x * res_l`` with **no** +0.5 offset, so the faces ``x = 0`` and ``x = 1`` fall exactly on
   grid corners. Its cell is ``i = min(floor(p), res_l - 1)`` per axis (so ``x = 1`` lies in the
@@ -25,42 +25,25 @@ optimizer step to emulate pure low-precision storage, where updates below half a
 from __future__ import annotations
 
 import functools
-import hashlib
-import math
-import os
-import warnings
 from collections.abc import Sequence
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from .backend import check_backend, kernel
+from .backend import load as backend_load
+from .levels import level_offsets, level_resolutions
+
+__all__ = [
+    "HashGrid",
+    "hash_encode_cpp",
+    "hash_encode_reference",
+    "level_offsets",
+    "level_resolutions",
+    "load_extension",
+]
+
 PRIMES = (1, 2654435761, 805459861)
-BACKENDS = ("auto", "cpp", "compile", "torch")
-
-
-def level_resolutions(levels: int, n_min: int, n_max: int) -> list[int]:
-    """Cells per axis of each level: ``floor(n_min * b**l)``, geometric from n_min to n_max.
-
-    A relative guard of 1e-9 keeps ``n_min * b**(L-1)`` from rounding down to ``n_max - 1``.
-    """
-    if levels < 1 or n_min < 1 or n_max < n_min:
-        raise ValueError(
-            f"need levels >= 1 and 1 <= n_min <= n_max, got {levels}, {n_min}, {n_max}"
-        )
-    b = math.exp(math.log(n_max / n_min) / (levels - 1)) if levels > 1 else 1.0
-    return [int(math.floor(n_min * b**lvl * (1 + 1e-9))) for lvl in range(levels)]
-
-
-def level_offsets(resolutions: Sequence[int], log2_hashmap: int) -> list[int]:
-    """Start row of each level in the table (``len = levels + 1``, last = total rows).
-
-    Level ``l`` uses ``min(2**log2_hashmap, (res_l + 1)**3)`` rows.
-    """
-    offsets = [0]
-    for res in resolutions:
-        offsets.append(offsets[-1] + min(1 << log2_hashmap, (res + 1) ** 3))
-    return offsets
 
 
 def _corner_bits(device: torch.device) -> Tensor:
@@ -127,16 +110,6 @@ class _RoundTo(torch.autograd.Function):
         return grad, None
 
 
-_warned: set[str] = set()
-
-
-def _warn_once(message: str) -> None:
-    """Emit ``message`` as a RuntimeWarning the first time it is seen in this process."""
-    if message not in _warned:
-        _warned.add(message)
-        warnings.warn(message, RuntimeWarning, stacklevel=3)
-
-
 class HashGrid(torch.nn.Module):
     """Instant-NGP multiresolution hash encoding of points in the unit cube.
 
@@ -145,8 +118,9 @@ class HashGrid(torch.nn.Module):
         features: F, features per level and table row.
         log2_hashmap: log2 of T, the maximum rows per level.
         n_min, n_max: cells per axis of the coarsest and finest levels.
-        backend: "auto" (C++ kernel, falling back to "torch" with a one-time warning), "cpp",
-            "compile" (torch.compile of the reference) or "torch" (the reference).
+        backend: "auto" (C++ kernel, falling back to "torch" with a one-time notice), "cpp",
+            "compile" (torch.compile of the reference) or "torch" (the reference); see
+            :func:`nerf.backend.kernel`.
         dtype: storage precision of the table (float32, float16 or bfloat16; emulated, see the
             module docstring).
         inplace_grad: with the C++ kernel, add the table gradient straight into
@@ -168,8 +142,7 @@ class HashGrid(torch.nn.Module):
         inplace_grad: bool = False,
     ) -> None:
         super().__init__()
-        if backend not in BACKENDS:
-            raise ValueError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
+        check_backend(backend)
         if dtype not in (torch.float32, torch.float16, torch.bfloat16):
             raise ValueError(f"dtype must be float32, float16 or bfloat16, got {dtype}")
         self.levels = levels
@@ -186,18 +159,12 @@ class HashGrid(torch.nn.Module):
         self._encode = None  # resolved lazily on first forward
 
     def _resolve(self):
-        """Pick the encoding function for ``self.backend`` (compiling the C++ kernel if needed)."""
-        if self.backend in ("auto", "cpp"):
-            try:
-                load_extension()
-                if self.inplace_grad:
-                    return functools.partial(hash_encode_cpp, grad_into=self.table)
-                return hash_encode_cpp
-            except Exception as err:  # a compiler or build failure of any kind
-                if self.backend == "cpp":
-                    raise
-                _warn_once(f"hash grid C++ kernel unavailable ({err}); using the PyTorch reference")
-                return hash_encode_reference
+        """Pick the encoding function for ``self.backend`` (the fallback rule of
+        :func:`nerf.backend.kernel`; compiles the C++ kernel if needed)."""
+        if kernel("hashgrid", self.backend) is not None:
+            if self.inplace_grad:
+                return functools.partial(hash_encode_cpp, grad_into=self.table)
+            return hash_encode_cpp
         if self.backend == "compile":
             return _compiled_reference()
         return hash_encode_reference
@@ -225,61 +192,9 @@ class HashGrid(torch.nn.Module):
         )
 
 
-def _cpu_tag() -> str:
-    """8 hex digits naming this CPU's instruction-set flags (builds use ``-march=native``)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return "generic"
-    flags = next((line for line in text.splitlines() if line.startswith("flags")), "")
-    return hashlib.sha256(flags.encode()).hexdigest()[:8]
-
-
-def extension_build_dir(name: str) -> Path:
-    """Where a compiled C++ kernel is cached:
-    ``$XDG_CACHE_HOME/dronecap/torch_extensions/<name>-<cpu tag>`` (``~/.cache`` by default),
-    one folder per CPU flavour so a shared home never loads a build for another CPU."""
-    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return cache / "dronecap" / "torch_extensions" / f"{name}-{_cpu_tag()}"
-
-
-_EXTENSIONS: dict[str, object] = {}
-
-
-def build_extension(name: str, source: str, extra_cflags: Sequence[str] = ()):
-    """Compile (once, ~30-60 s, cached on disk and rebuilt when the source changes) and import
-    the C++/OpenMP kernel module ``csrc/<source>`` as ``dronecap_<name>``.
-
-    Raises whatever the compiler or loader raises when the kernel cannot be built.
-    """
-    if name not in _EXTENSIONS:
-        import fcntl  # noqa: PLC0415
-
-        from torch.utils import cpp_extension  # noqa: PLC0415
-
-        build_dir = extension_build_dir(name)
-        build_dir.mkdir(parents=True, exist_ok=True)
-        # torch marks a build in progress with a plain `lock` file and waits forever for it to
-        # go away; a build killed mid-way (Ctrl-C, a killed test run) leaves it behind and every
-        # later process hangs. Our own flock is released by the kernel when its holder dies, so
-        # while we hold it no other dronecap process is building and any `lock` file is stale.
-        with open(build_dir / ".dronecap-build.lock", "w") as guard:
-            fcntl.flock(guard, fcntl.LOCK_EX)
-            (build_dir / "lock").unlink(missing_ok=True)
-            _EXTENSIONS[name] = cpp_extension.load(
-                name=f"dronecap_{name}",
-                sources=[str(Path(__file__).parent / "csrc" / source)],
-                extra_cflags=["-O3", "-march=native", "-fopenmp", *extra_cflags],
-                extra_ldflags=["-fopenmp"],
-                build_directory=str(build_dir),
-                verbose=False,
-            )
-    return _EXTENSIONS[name]
-
-
 def load_extension():
-    """The hash encoding kernels (``csrc/hashgrid.cpp``), built on first use."""
-    return build_extension("hashgrid", "hashgrid.cpp")
+    """The hash encoding kernels (``csrc/hashgrid.cpp``), built on first use (:mod:`.backend`)."""
+    return backend_load("hashgrid")
 
 
 BACKWARD_MODES = {"level": 0, "atomic": 1, "partial": 2}

@@ -3,7 +3,7 @@
 Same arguments, same :class:`~nerf.marching.Samples` and the same samples as the PyTorch
 reference (the kernel repeats its float32 arithmetic operation by operation), several times
 faster because no candidate tensor is ever materialised. The kernel is compiled on first use
-and cached like the hash grid's (see :func:`nerf.hashgrid.build_extension`).
+and cached by :mod:`nerf.backend`, whose fallback rule :func:`march_function` follows.
 """
 
 from __future__ import annotations
@@ -11,18 +11,23 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .hashgrid import build_extension
+from .backend import kernel
+from .backend import load as backend_load
 from .marching import Samples
+from .marching import march as march_reference
 from .occupancy import GridState
 
 
 def load_extension():
-    """The marching kernel (``csrc/march.cpp``), built on first use.
+    """The marching kernel (``csrc/march.cpp``), built on first use without fused
+    multiply-adds, so its float32 results match the reference's tensor arithmetic exactly."""
+    return backend_load("march")
 
-    Built with ``-ffp-contract=off`` so no multiply-add is fused: the float32 results then
-    match the reference's one-rounding-per-operation tensor arithmetic exactly.
-    """
-    return build_extension("march", "march.cpp", ["-ffp-contract=off"])
+
+def march_function(backend: str = "auto"):
+    """The marching function for ``backend``: :func:`march` (C++) or the PyTorch reference
+    :func:`nerf.marching.march`, by the rule of :func:`nerf.backend.kernel`."""
+    return march if kernel("march", backend) is not None else march_reference
 
 
 def march(

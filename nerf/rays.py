@@ -1,32 +1,45 @@
-"""Camera rays of pinhole views (OpenCV axes) and their intersection with an AABB."""
+"""Camera rays through the stored camera model (OpenCV axes) and their intersection with an AABB.
+
+Rays go through pixel centres ``(u + 0.5, v + 0.5)`` *as the lens saw them*: the camera's
+distortion model (:class:`dronecap.camera.Camera`: SIMPLE_RADIAL, OPENCV, fisheye, ...) is undone
+once per camera by OpenCV (:meth:`Camera.pixel_directions`) and the resulting table of
+camera-frame directions is cached, so training, rendering and evaluation all cast the rays the
+images were actually taken along.
+"""
 
 from __future__ import annotations
+
+import functools
 
 import torch
 from torch import Tensor
 
+from dronecap.camera import Camera
+
 TINY = 1e-12  # direction components smaller than this count as parallel to a slab
 
 
-def camera_rays(c2w: Tensor, fx: float, fy: float, cx: float, cy: float, u: Tensor, v: Tensor):
-    """Rays through pixel indices ``(u, v)`` of a pinhole camera (pixel centres at +0.5).
+@functools.lru_cache(maxsize=16)
+def pixel_directions(camera: Camera) -> Tensor:
+    """Camera-frame directions (x/z, y/z, 1) through every pixel centre of ``camera``,
+    undistorted through its lens model: float32 [H, W, 3] CPU tensor, cached per camera."""
+    return torch.from_numpy(camera.pixel_directions())
+
+
+def camera_rays(c2w: Tensor, camera: Camera, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """Rays through pixels ``(u, v)`` of ``camera`` (through their centres, lens included).
 
     Args:
         c2w: [4, 4] or [N, 4, 4] camera-to-world, OpenCV axes (x right, y down, z forward).
-        fx, fy, cx, cy: intrinsics in pixels.
-        u, v: [N] pixel column and row indices (int or float).
+        camera: intrinsics and distortion of the image the pixels belong to.
+        u, v: [N] integer pixel column and row indices (0 <= u < width, 0 <= v < height).
 
     Returns:
-        origins [N, 3] and unit directions [N, 3] in world (scene) units, float32.
+        origins [N, 3] and unit directions [N, 3] in world (scene) units, float32, on the
+        device of ``c2w``.
     """
-    d = torch.stack(
-        [
-            (u.float() + 0.5 - cx) / fx,
-            (v.float() + 0.5 - cy) / fy,
-            torch.ones_like(u, dtype=torch.float32),
-        ],
-        -1,
-    )
+    table = pixel_directions(camera).to(c2w.device)
+    d = table[v.long(), u.long()]
     c2w = c2w.float()
     rot = c2w[..., :3, :3]
     dirs = (rot @ d.unsqueeze(-1)).squeeze(-1) if rot.ndim == 3 else d @ rot.T

@@ -14,116 +14,70 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from dronecap.datasets.format import Dataset, Intrinsics
+from dronecap.camera import Camera
+from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 from dronecap.progress import progress_bar
 
 from . import occupancy
 from .checkpoint import read_checkpoint, write_checkpoint
 from .config import TrainConfig
-from .field import Field, auto_n_max
+from .field import Field
 from .losses import huber_sum, psnr_from_mse
+from .march_kernel import march_function
 from .marching import Samples, take_rays
-from .marching import march as march_reference
 from .rays import camera_rays, ray_aabb
-from .volrend import accumulate, packed_weights, render_packed
+from .render import Volume, render_rays, render_view
+from .resolve import Resolved, legacy_resolved, resolve, training_frames
+from .volrend import render_packed
 
 MAX_BAD_STEPS = 20  # consecutive non-finite steps before training stops
-RENDER_RAYS = 1 << 15  # rays per chunk when rendering a view
-RENDER_ROUND = 16  # samples per ray evaluated per round when rendering
-RENDER_FIELD_CHUNK = 1 << 14  # samples per field call when rendering (activations stay in cache)
 
 
 class TrainingDiverged(InputError):
     """Training kept producing non-finite losses; the last good weights were kept."""
 
 
-@dataclass
-class Scene:
-    """What the trainer takes from a dataset besides its pixels (all in scene units)."""
-
-    aabb: np.ndarray  # float64 [2, 3]
-    near: float  # mean near distance of the training views
-    focal: float  # mean focal length (pixels)
-    channels: int  # C
-    background: tuple[float, ...]  # evaluation background, C values in [0, 1]
-
-    @classmethod
-    def from_dataset(cls, ds: Dataset) -> Scene:
-        """Bounds, near distance, focal, channels and background of ``ds`` (InputError when
-        poses, intrinsics or the AABB are missing)."""
-        if ds.poses is None or ds.intrinsics is None:
-            raise InputError("dataset has no poses/intrinsics: run `dronecap sfm` first")
-        if ds.aabb is None:
-            raise InputError("dataset has no scene AABB (attrs 'aabb')")
-        train = training_frames(ds)
-        if ds.near_far is not None:
-            near = float(np.mean(ds.near_far[train, 0]))
-        else:
-            centre = np.mean(ds.aabb, 0)
-            near = float(np.mean(np.linalg.norm(ds.poses[train, :3, 3] - centre, axis=1)))
-        bg = ds.background if ds.background is not None else (0.0,) * ds.channels
-        k = ds.intrinsics
-        return cls(np.asarray(ds.aabb, float), near, 0.5 * (k.fx + k.fy), ds.channels, tuple(bg))
-
-
-def training_frames(ds: Dataset) -> np.ndarray:
-    """Indices of the frames to train on: the train split when there is one, else all."""
-    if ds.split is not None and np.any(ds.split == 0):
-        return np.flatnonzero(ds.split == 0)
-    return np.arange(ds.n)
-
-
-def select_march(backend: str):
-    """The marching function: the C++ kernel unless ``backend == "torch"`` or it cannot be
-    built (then the PyTorch reference, :func:`nerf.marching.march`)."""
-    if backend == "torch":
-        return march_reference
-    try:
-        from .march_kernel import load_extension, march
-
-        load_extension()
-        return march
-    except Exception:  # no compiler: the reference gives the same samples, slower
-        if backend == "cpp":
-            raise
-        return march_reference
-
-
 class Trainer:
     """Trains a :class:`Field` on the training frames of a dataset (see module docstring).
 
     Args:
-        cfg: the configuration (a preset with overrides).
-        train: dataset holding the training frames (frames of split 0, or all when no split
-            marks any); AABB, near distance, background and channel count come from it.
+        cfg: the configuration (a preset with overrides), or one already resolved against
+            ``train`` (:func:`nerf.resolve.resolve`); a plain config is resolved here.
+        train: dataset holding the training frames (split 0, or all frames when it has no
+            split); bounds, near distance, background and channel count come from it.
         device: torch device (CPU in this project).
-        backend: hash-grid backend ("auto": the C++ kernel when it builds).
+        backend: kernel backend ("auto": the C++ kernels when they build; see nerf.backend).
+
+    ``self.resolved`` is the one resolved configuration; ``self.cfg`` is its ``config`` (the
+    values the model is built with, ``n_max`` included) and ``self.scene`` its scene.
     """
 
     def __init__(
-        self, cfg: TrainConfig, train: Dataset, device: str = "cpu", backend: str = "auto"
+        self,
+        cfg: TrainConfig | Resolved,
+        train: Dataset,
+        device: str = "cpu",
+        backend: str = "auto",
     ) -> None:
-        self._setup(cfg, Scene.from_dataset(train), device, backend)
+        resolved = cfg if isinstance(cfg, Resolved) else resolve(cfg, train)
+        self._setup(resolved, device, backend)
         self.set_data(train)
 
-    def _setup(self, cfg: TrainConfig, scene: Scene, device: str, backend: str) -> None:
+    def _setup(self, resolved: Resolved, device: str, backend: str) -> None:
+        cfg, scene = resolved.config, resolved.scene
+        self.resolved = resolved
         self.cfg = cfg
         self.scene = scene
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
-        self.n_max = (
-            auto_n_max(scene.aabb, scene.near, scene.focal) if cfg.auto_n_max else cfg.n_max
-        )
-        self.field = Field(cfg, scene.channels, scene.aabb, self.n_max, backend).to(self.device)
+        self.field = Field(cfg, scene.channels, scene.aabb, backend).to(self.device)
         table = [self.field.encoding.table]
         self.optimizer = torch.optim.Adam(
             [
@@ -145,7 +99,8 @@ class Trainer:
         self.train_seconds = 0.0
         self.samples_per_ray = float(min(cfg.max_samples_per_ray, cfg.march_steps))
         self.images = None
-        self.march = select_march(backend)
+        self.camera: Camera | None = None
+        self.march = march_function(backend)
 
     def set_data(self, train: Dataset) -> None:
         """Use the training frames of ``train`` (same channels as the model) from now on."""
@@ -153,6 +108,8 @@ class Trainer:
             raise InputError(
                 f"dataset has {train.channels} channels, the model {self.scene.channels}"
             )
+        if train.poses is None or train.intrinsics is None:
+            raise InputError("dataset has no poses/intrinsics: run `dronecap sfm` first")
         idx = training_frames(train)
         if idx.size == 0:
             raise InputError("dataset has no frames to train on")
@@ -161,7 +118,7 @@ class Trainer:
             None if train.alpha is None else torch.as_tensor(train.alpha[idx], device=self.device)
         )
         self.poses = torch.as_tensor(train.poses[idx], dtype=torch.float32, device=self.device)
-        self.intrinsics = train.intrinsics
+        self.camera = train.intrinsics
 
     # ----------------------------------------------------------------------------------------
     # training
@@ -177,14 +134,13 @@ class Trainer:
         """Random pixels of ``images_per_step`` random training images: rays and targets."""
         g, dev = self.generator, self.device
         n_img, h, w, c = self.images.shape
-        k = self.intrinsics
         imgs = torch.randint(
             n_img, (min(self.cfg.images_per_step, n_img),), generator=g, device=dev
         )
         which = imgs[torch.randint(imgs.numel(), (n_rays,), generator=g, device=dev)]
         u = torch.randint(w, (n_rays,), generator=g, device=dev)
         v = torch.randint(h, (n_rays,), generator=g, device=dev)
-        origins, dirs = camera_rays(self.poses[which], k.fx, k.fy, k.cx, k.cy, u, v)
+        origins, dirs = camera_rays(self.poses[which], self.camera, u, v)
         rgb = self.images[which, v, u].float() / 255.0
         if self.alpha is not None:
             a = (self.alpha[which, v, u].float() / 255.0).unsqueeze(-1)
@@ -376,15 +332,15 @@ class Trainer:
         self.grid = occupancy.from_numpy(g, self.device)
 
     def save(self, path: str | Path) -> None:
-        """Write a full checkpoint atomically (config, scene, weights, Adam, grid, step, RNG)."""
+        """Write a full checkpoint atomically (resolved config and scene, weights, Adam, grid,
+        step, RNG, camera)."""
         for k, v in self.field.state_dict().items():
             if not torch.isfinite(v).all():
                 raise TrainingDiverged(f"refusing to save non-finite weights ({k})", path)
         write_checkpoint(
             path,
             {
-                "config": dataclasses.asdict(self.cfg),
-                "scene": dataclasses.asdict(self.scene),
+                "resolved": self.resolved.to_dict(),
                 "field": self.field.state_dict(),
                 "optimizer": self.optimizer.state_dict(),
                 "grid": self.grid_state(),
@@ -392,9 +348,7 @@ class Trainer:
                 "train_seconds": self.train_seconds,
                 "samples_per_ray": self.samples_per_ray,
                 "rng": {"generator": self.generator.get_state(), "torch": torch.get_rng_state()},
-                "intrinsics": None
-                if self.intrinsics is None
-                else dataclasses.asdict(self.intrinsics),
+                "intrinsics": None if self.camera is None else dataclasses.asdict(self.camera),
             },
         )
 
@@ -406,16 +360,27 @@ class Trainer:
         device: str = "cpu",
         backend: str = "auto",
     ) -> Trainer:
-        """A trainer restored from :meth:`save` (``train`` is needed only to keep training)."""
+        """A trainer restored from :meth:`save` (``train`` is needed only to keep training).
+
+        Checkpoints written before configs were resolved (a ``config`` and a ``scene`` instead
+        of ``resolved``) load too. InputError when the file is unusable.
+        """
         ck = read_checkpoint(path)
-        cfg_d = dict(ck["config"])
-        cfg_d["betas"] = tuple(cfg_d["betas"])
-        scene_d = dict(ck["scene"])
-        scene_d["aabb"] = np.asarray(scene_d["aabb"])
-        scene_d["background"] = tuple(scene_d["background"])
+        try:
+            if "resolved" in ck:
+                resolved = Resolved.from_dict(ck["resolved"])
+            else:
+                resolved = legacy_resolved(ck["config"], ck["scene"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise InputError(f"checkpoint has no usable configuration ({err})", path) from None
         self = cls.__new__(cls)
-        self._setup(TrainConfig(**cfg_d), Scene(**scene_d), device, backend)
-        self.field.load_state_dict(ck["field"])
+        self._setup(resolved, device, backend)
+        try:
+            self.field.load_state_dict(ck["field"])
+        except RuntimeError as err:
+            first = str(err).strip().splitlines()[0]
+            msg = f"checkpoint weights do not fit its configuration: {first}"
+            raise InputError(msg, path) from None
         self.optimizer.load_state_dict(ck["optimizer"])
         self.load_grid_state(ck["grid"])
         self.step = int(ck["step"])
@@ -426,94 +391,36 @@ class Trainer:
         if ck.get("intrinsics"):
             d = dict(ck["intrinsics"])
             d["distortion"] = tuple(d.get("distortion", ()))
-            self.intrinsics = Intrinsics(**d)
+            self.camera = Camera(**d)
         if train is not None:
             self.set_data(train)
         return self
 
+    def weights_finite(self) -> bool:
+        """True when every weight of the field is finite."""
+        return all(bool(torch.isfinite(v).all()) for v in self.field.state_dict().values())
+
     # ----------------------------------------------------------------------------------------
-    # inference
-    @torch.no_grad()
-    def render(self, c2w: np.ndarray, intrinsics: Intrinsics, background=None) -> np.ndarray:
-        """Render one view.
-
-        Args:
-            c2w: [4, 4] camera-to-world (OpenCV axes).
-            intrinsics: pinhole intrinsics; the output has its width and height.
-            background: C values in [0, 1]; default the dataset's background.
-
-        Returns:
-            float32 [H, W, C] in [0, 1].
-        """
-        self.field.eval()
-        h, w, k = intrinsics.height, intrinsics.width, intrinsics
-        bg = torch.as_tensor(
-            self.scene.background if background is None else background,
-            dtype=torch.float32,
-            device=self.device,
+    # inference (nerf.render does the work)
+    def volume(self) -> Volume:
+        """The model as :mod:`nerf.render` takes it."""
+        cfg = self.cfg
+        return Volume(
+            self.field, self.grid, self.aabb, self.step_size, cfg.max_samples_per_ray, self.march
         )
-        vv, uu = torch.meshgrid(
-            torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij"
-        )
-        pose = torch.as_tensor(np.asarray(c2w), dtype=torch.float32, device=self.device)
-        out = []
-        for a in range(0, h * w, RENDER_RAYS):
-            u, v = uu.reshape(-1)[a : a + RENDER_RAYS], vv.reshape(-1)[a : a + RENDER_RAYS]
-            origins, dirs = camera_rays(pose, k.fx, k.fy, k.cx, k.cy, u, v)
-            out.append(self.render_rays(origins, dirs, bg))
-        return torch.cat(out).reshape(h, w, -1).cpu().numpy().astype(np.float32)
 
-    @torch.no_grad()
-    def render_rays(
-        self, origins, dirs, background, min_transmittance: float = 1e-3, min_weight: float = 1e-4
-    ):
-        """Colours [R, C] of rays [R, 3] (no grad), marching and evaluating ``RENDER_ROUND``
-        samples per ray per round and stopping rays whose transmittance fell below
-        ``min_transmittance`` (early termination: what lies behind an opaque surface is not
-        evaluated); the colour MLP runs only for samples of weight above ``min_weight``.
+    def render(
+        self, c2w: np.ndarray, camera: Camera, background=None, **thresholds: float
+    ) -> np.ndarray:
+        """Render one view through ``camera`` (lens model included) -> float32 [H, W, C];
+        ``background`` defaults to the dataset's; ``thresholds`` as in
+        :func:`nerf.render.render_rays`."""
+        bg = self.scene.background if background is None else background
+        return render_view(self.volume(), c2w, camera, tuple(bg), **thresholds)
 
-        ``background`` is [C] or [R, C]. Samples sit where an unlimited march would put them,
-        so the result differs only by the dropped tail (< ``min_transmittance``) and the
-        skipped weights (< ``min_weight`` each): on lego models, 71-79 dB (PSNR) from the exact
-        render (benchmarks/train_speed.py).
-        """
-        n, c = origins.shape[0], self.scene.channels
-        t_near, t_far, hit = ray_aabb(origins, dirs, self.aabb)
-        dir_enc = self.field.dir_encoding(dirs)  # [R, 16]: once per ray, gathered per sample
-        rgb = torch.zeros(n, c, device=self.device)
-        trans = torch.ones(n, device=self.device)
-        alive = hit.nonzero().squeeze(1)
-        t0 = t_near.clone()
-        limit = self.cfg.max_samples_per_ray
-        while alive.numel():
-            o, d, t_end, m = origins[alive], dirs[alive], t_far[alive], alive.numel()
-            s = self.march(
-                o, d, t0[alive], t_end, self.step_size, self.grid, self.aabb, limit,
-                max_kept=RENDER_ROUND,
-            )  # fmt: skip
-            t0[alive] = s.t_resume
-            if s.n == 0:
-                alive = alive[s.t_resume < t_end]
-                continue
-            ri, t_s, t_e = s.ray_indices, s.t_starts, s.t_ends
-            pts = torch.addcmul(o[ri], d[ri], (0.5 * (t_s + t_e))[:, None])
-            parts = _in_chunks(self.field.geometry, pts)
-            sigmas, geo = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
-            tau = sigmas * (t_e - t_s)
-            tr_alive = trans[alive]
-            w, _ = packed_weights(tau, ri, m)
-            w = w * tr_alive[ri]
-            use = (w > min_weight).nonzero().squeeze(1)  # colour only where it shows
-            colors = torch.cat(
-                _in_chunks(self.field.color_from_encoding, geo[use], dir_enc[alive[ri[use]]])
-                or [geo.new_zeros(0, c)]
-            )
-            rgb.index_add_(0, alive[ri[use]], w[use, None] * colors)
-            tr_alive = tr_alive * torch.exp(-accumulate(tau, ri, m))
-            trans[alive] = tr_alive
-            alive = alive[(tr_alive > min_transmittance) & (s.t_resume < t_end)]
-        bg = background.expand(n, c) if background.ndim == 1 else background
-        return (rgb + trans[:, None] * bg).clamp(0, 1)
+    def render_rays(self, origins, dirs, background, **thresholds: float) -> torch.Tensor:
+        """Colours [R, C] of rays [R, 3] (:func:`nerf.render.render_rays`)."""
+        return render_rays(self.volume(), origins, dirs, background, **thresholds)
 
     def evaluate(self, test: Dataset, views=None, progress: bool = False) -> dict:
         """PSNR/SSIM (scikit-image, stored resolution) of test views against ground truth
@@ -531,168 +438,3 @@ class Trainer:
     def parameter_count(self) -> int:
         """Trainable parameters (hash table + MLPs)."""
         return self.field.parameter_count()
-
-
-# --------------------------------------------------------------------------------------------
-# the whole `dronecap train`
-CHECKPOINT = "checkpoint.pt"
-METRICS = "metrics.json"
-RUN_INFO = "run.json"
-COMPARE_VIEWS = 4  # test views in the ground truth | render image
-
-
-def _in_chunks(fn: Callable, *tensors: torch.Tensor) -> list:
-    """``fn`` applied to ``RENDER_FIELD_CHUNK`` rows of ``tensors`` at a time (all [N, ...]),
-    so the MLP activations stay in cache; the list of results (empty for N = 0)."""
-    chunks = (t.split(RENDER_FIELD_CHUNK) for t in tensors)
-    return [fn(*rows) for rows in zip(*chunks, strict=True)]
-
-
-def _config_changes(old: TrainConfig, new: TrainConfig) -> list[str]:
-    """Fields (other than ``steps``) whose values differ between two configs."""
-    a, b = dataclasses.asdict(old), dataclasses.asdict(new)
-    return [
-        k for k in a if k != "steps" and tuple(np.atleast_1d(a[k])) != tuple(np.atleast_1d(b[k]))
-    ]
-
-
-def _write_json(path: Path, obj: dict) -> None:
-    import json
-
-    from dronecap.files import atomic_output
-
-    with atomic_output(path) as tmp:
-        Path(tmp).write_text(json.dumps(obj, indent=2, default=float) + "\n")
-
-
-def train_run(
-    dataset_path,
-    cfg: TrainConfig,
-    out_dir,
-    resume: bool = True,
-    progress: bool = True,
-    checkpoint_every: int = 500,
-    backend: str = "auto",
-) -> dict:
-    """Train on a dataset file, checkpointing, then evaluate all test views; returns metrics.
-
-    Writes into ``out_dir``: ``checkpoint.pt`` (every ``checkpoint_every`` steps, on Ctrl-C
-    and at the end; a later call resumes from it when ``resume``), ``run.json`` (dataset and
-    config), ``metrics.json`` (test PSNR/SSIM per view and mean, train time, ms/step,
-    parameter count), ``renders/test_XXX.png``, ``compare.png`` (ground truth | render) and,
-    when the GAP9 model is importable, ``cost.json``.
-
-    Raises:
-        InputError: unreadable dataset, a run dir trained with another configuration, or a
-            diverged training.
-    """
-    from dronecap.datasets.format import open_dataset
-
-    dataset_path = Path(dataset_path)
-    out = Path(out_dir)
-    ds = open_dataset(dataset_path, kinds=("dataset", "shard"))
-    ckpt = out / CHECKPOINT
-    if resume and ckpt.exists():
-        trainer = Trainer.load(ckpt, ds, backend=backend)
-        changed = _config_changes(trainer.cfg, cfg)
-        if changed:
-            raise InputError(
-                f"was trained with a different configuration ({', '.join(changed)}); "
-                "pass --no-resume to start over or choose another --out",
-                out,
-            )
-        trainer.cfg = cfg
-    else:
-        trainer = Trainer(cfg, ds, backend=backend)
-    _write_json(
-        out / RUN_INFO,
-        {
-            "dataset": str(dataset_path.resolve()),
-            "config": dataclasses.asdict(cfg),
-            "n_max": trainer.n_max,
-        },
-    )
-    ms: list[float] = []
-    history: list[dict] = []
-    bar = progress_bar(
-        total=cfg.steps,
-        initial=trainer.step,
-        desc="train",
-        unit="step",
-        disable=not progress,
-        dynamic_ncols=True,
-    )
-    try:
-        while trainer.step < cfg.steps:
-            log = trainer.train_step()
-            ms.append(log["ms"])
-            bar.update(1)
-            if trainer.step % 10 == 0 or trainer.step == cfg.steps:
-                bar.set_postfix(
-                    loss=f"{log['loss']:.4f}",
-                    psnr=f"{log['psnr']:.1f}",
-                    spr=f"{log['samples'] / max(log['rays'], 1):.1f}",
-                    ms=f"{np.median(ms[-50:]):.0f}",
-                )
-            if trainer.step % 100 == 0:
-                history.append(
-                    {k: log[k] for k in ("step", "loss", "psnr", "samples", "rays")}
-                    | {"seconds": trainer.train_seconds}
-                )
-            if trainer.step % checkpoint_every == 0 or trainer.step == cfg.steps:
-                trainer.save(ckpt)
-    except KeyboardInterrupt:
-        bar.close()
-        trainer.save(ckpt)
-        raise
-    bar.close()
-    metrics = evaluate_run(trainer, ds, out, progress)
-    metrics |= {
-        "dataset": str(dataset_path.resolve()),
-        "steps": trainer.step,
-        "train_seconds": trainer.train_seconds,
-        "ms_per_step_median": float(np.median(ms)) if ms else None,
-        "threads": torch.get_num_threads(),
-        "history": history,
-    }
-    _write_json(out / METRICS, metrics)
-    _write_cost(trainer, ds, out)
-    return metrics
-
-
-def evaluate_run(trainer: Trainer, ds: Dataset, out: Path, progress: bool = True) -> dict:
-    """Evaluate all test views, write their renders and ``compare.png``; return metrics."""
-    from .evaluate import ground_truth
-    from .outputs import side_by_side, write_png
-
-    res = trainer.evaluate_all(ds, progress)
-    images = res.pop("images")
-    for v, img in zip(res["per_view"], images, strict=True):
-        write_png(out / "renders" / f"test_{v['index']:03d}.png", img)
-    pairs = [
-        (ground_truth(ds, v["index"], trainer.scene.background), img)
-        for v, img in list(zip(res["per_view"], images, strict=True))[:COMPARE_VIEWS]
-    ]
-    if pairs:
-        write_png(out / "compare.png", side_by_side(pairs))
-    return {
-        "test": res,
-        "parameters": trainer.parameter_count(),
-        "n_max": trainer.n_max,
-        "channels": trainer.scene.channels,
-        "config": dataclasses.asdict(trainer.cfg),
-    }
-
-
-def _write_cost(trainer: Trainer, ds: Dataset, out: Path) -> None:
-    """``cost.json`` from the GAP9 model for this run's resolved configuration."""
-    from dronecap.gap9.model import cost_report
-
-    h, w = ds.hw
-    cfg = trainer.cfg.replace(
-        n_max=trainer.n_max,
-        channels=trainer.scene.channels,
-        resolution=w,
-        train_images=int(training_frames(ds).size),
-    )
-    _write_json(out / "cost.json", cost_report(cfg))

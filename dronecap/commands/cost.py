@@ -21,7 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "run_dir",
         nargs="?",
-        help="a training run dir (its metrics.json or config.json gives the configuration)",
+        help="a training run dir (its run.json gives the resolved configuration that was trained)",
     )
     p.add_argument("--preset", help="a named preset (default: tiny-dronerf)")
     p.add_argument("--platform", help="platform YAML (default: the shipped gap9/gap9.yaml)")
@@ -72,31 +72,19 @@ def _platform(args: argparse.Namespace):
 
 
 def _config(args: argparse.Namespace):
-    """(TrainConfig, default JSON path) from RUN_DIR, --preset or the default preset, + --set."""
+    """(TrainConfig, default JSON path) from RUN_DIR (the resolved configuration it was
+    trained with), --preset or the default preset, + --set."""
     from dronecap import workspace
     from dronecap.errors import InputError
-    from dronecap.gap9.search import config_from_dict, parse_set
-    from dronecap.nerf.config import preset
+    from dronecap.nerf.config import apply_sets, preset
+    from dronecap.nerf.resolve import check_config
+    from dronecap.nerf.run_dir import COST, read_resolved
 
     if args.run_dir and args.preset:
         raise InputError("give either RUN_DIR or --preset, not both")
     if args.run_dir:
-        run = Path(args.run_dir)
-        for name in ("config.json", "metrics.json"):
-            f = run / name
-            if f.exists():
-                try:
-                    doc = json.loads(f.read_text())
-                except ValueError as err:
-                    raise InputError(f"not JSON ({err})", f) from err
-                cfg_d = doc.get("config", doc) if isinstance(doc, dict) else None
-                if not isinstance(cfg_d, dict):
-                    raise InputError("no configuration dict inside", f)
-                cfg = config_from_dict(cfg_d)
-                break
-        else:
-            raise InputError("no config.json or metrics.json with a 'config' here", run)
-        default_out = run / "cost.json"
+        cfg = read_resolved(args.run_dir).config
+        default_out = Path(args.run_dir) / COST
     else:
         try:
             cfg = preset(args.preset or "tiny-dronerf")
@@ -104,10 +92,41 @@ def _config(args: argparse.Namespace):
             raise InputError(str(err.args[0])) from err
         default_out = workspace.resolve(args.workdir, None, "cost.json")
     try:
-        cfg = parse_set(cfg, args.sets)
+        cfg = apply_sets(cfg, args.sets)
     except (ValueError, TypeError) as err:
         raise InputError(str(err)) from err
+    check_config(cfg)
     return cfg, default_out
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Range-check the numeric options before any work (one line each)."""
+    import math
+
+    from dronecap.errors import InputError
+
+    if not (math.isfinite(args.spp) and args.spp > 0):
+        raise InputError(f"--spp takes a positive number of samples per pixel, got {args.spp}")
+    if args.images is not None and args.images < 1:
+        raise InputError(f"--images takes a positive number of images, got {args.images}")
+    if args.top < 1:
+        raise InputError(f"--top takes a positive count, got {args.top}")
+    if not (math.isfinite(args.tolerance_db) and args.tolerance_db >= 0):
+        raise InputError(f"--tolerance-db takes a number >= 0, got {args.tolerance_db}")
+
+
+def write_run_cost(run_dir: str | Path) -> Path:
+    """``RUN_DIR/cost.json``: the report ``dronecap cost RUN_DIR`` gives with its defaults
+    (the train command calls this: the NeRF core never imports the cost model)."""
+    from dronecap.files import atomic_output
+    from dronecap.gap9.model import cost_report
+    from dronecap.nerf.run_dir import COST, read_resolved
+
+    rep = cost_report(read_resolved(run_dir).config)
+    out = Path(run_dir) / COST
+    with atomic_output(out) as tmp:
+        tmp.write_text(json.dumps(rep, indent=1))
+    return out
 
 
 def _bytes(text: str | None, flag: str) -> int | None:
@@ -212,6 +231,7 @@ def _search(args: argparse.Namespace) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Print the report (or the Table II comparison, or the search) and write its outputs."""
+    _check_options(args)
     if args.table2:
         return _table2(args)
     if args.search:

@@ -1,4 +1,5 @@
-"""`dronecap eval`: re-evaluate a trained run on all its test views (PSNR/SSIM, scikit-image).
+"""`dronecap eval`: score a trained run on the test views of a dataset (PSNR/SSIM, scikit-image)
+into RUN_DIR/eval_<dataset stem>.json (the training record, metrics.json, is never touched).
 
 dronecap eval [RUN_DIR] [--dataset dataset.h5]
 """
@@ -7,9 +8,9 @@ from __future__ import annotations
 
 import argparse
 
-from dronecap.cpu import add_threads_argument, use_torch_threads
+from dronecap.cpu import add_threads_argument, check_threads, use_torch_threads
 
-HELP = "re-evaluate a trained run on its test views (PSNR/SSIM)"
+HELP = "score a trained run on a dataset's test views -> RUN_DIR/eval_<dataset>.json"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -21,16 +22,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Evaluate and update metrics.json."""
+    """Evaluate and write the dataset's eval file."""
     from dronecap import workspace
-    from dronecap.nerf.runs import open_run, update_metrics
+    from dronecap.nerf.run_dir import eval_run
 
+    check_threads(args.threads)
     run_dir = workspace.resolve(args.workdir, args.run_dir, workspace.TRAIN_RUN)
     use_torch_threads(args.threads)
-    trainer, ds = open_run(run_dir, args.dataset)
-    from dronecap.nerf.trainer import evaluate_run
-
-    m = update_metrics(run_dir, evaluate_run(trainer, ds, run_dir, not args.no_progress))
-    t = m["test"]
-    print(f"{run_dir}: test PSNR {t['psnr']:.2f} dB, SSIM {t['ssim']:.3f} over {t['views']} views")
+    out, rec = eval_run(run_dir, args.dataset, not args.no_progress)
+    t = rec["test"]
+    print(f"{out}: test PSNR {t['psnr']:.2f} dB, SSIM {t['ssim']:.3f} over {t['views']} views")
     return 0

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from dronecap.cpu import add_threads_argument, use_torch_threads
+from dronecap.cpu import add_threads_argument, check_threads, use_torch_threads
 
 HELP = "render views (test poses or an orbit) of a trained run"
 
@@ -32,16 +32,19 @@ def run(args: argparse.Namespace) -> int:
     from dronecap.errors import InputError
     from dronecap.nerf.evaluate import test_views
     from dronecap.nerf.outputs import orbit_poses, write_mp4, write_png
-    from dronecap.nerf.runs import open_run
+    from dronecap.nerf.run_dir import open_run
     from dronecap.progress import progress_bar
 
+    check_threads(args.threads)
+    if args.orbit is not None and args.orbit < 1:
+        raise InputError(f"--orbit takes a positive number of views, got {args.orbit}")
+    if not 1 <= args.fps <= 240:
+        raise InputError(f"--fps takes 1..240 frames per second, got {args.fps}")
     run_dir = workspace.resolve(args.workdir, args.run_dir, workspace.TRAIN_RUN)
     use_torch_threads(args.threads)
     trainer, ds = open_run(run_dir, args.dataset)
     out = Path(args.out) if args.out else run_dir / "render"
     if args.orbit is not None:
-        if args.orbit < 1:
-            raise InputError(f"--orbit takes a positive number of views, got {args.orbit}")
         poses = orbit_poses(ds.poses, trainer.scene.aabb.mean(0), args.orbit)
         names = [f"orbit_{i:03d}" for i in range(args.orbit)]
     else:

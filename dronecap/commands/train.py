@@ -1,20 +1,23 @@
-"""`dronecap train`: train Tiny-DroNeRF on a dataset into a run dir (resumable).
+"""`dronecap train`: train Tiny-DroNeRF on a dataset into a run dir (resumable), then ask the
+GAP9 cost model for the run's cost.json.
 
 dronecap train [dataset.h5] [--preset tiny-dronerf] [--steps N] [--out RUN_DIR]
-               [--set FIELD=VALUE ...] [--FIELD VALUE ...] [--no-resume] [--threads N]
+               [--set FIELD=VALUE ...] [--FIELD VALUE ...] [--no-resume | --resume-from RUN]
+               [--no-eval] [--threads N]
 """
 
 from __future__ import annotations
 
 import argparse
 
-from dronecap.cpu import add_threads_argument, use_torch_threads
+from dronecap.cpu import add_threads_argument, check_threads, use_torch_threads
 
 HELP = "train Tiny-DroNeRF on a dataset -> run dir"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of the command (one per TrainConfig field, generated from the dataclass)."""
+    from dronecap.nerf.backend import BACKENDS
     from dronecap.nerf.config import add_config_arguments
 
     p.add_argument("dataset", nargs="?", help="dataset.h5 (default: WORKDIR/dataset.h5)")
@@ -22,33 +25,54 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--no-resume", action="store_true", help="start over even if a checkpoint exists"
     )
+    p.add_argument(
+        "--resume-from",
+        metavar="RUN",
+        help="continue the model of another run folder (or checkpoint), even one trained on "
+        "another dataset (with a warning)",
+    )
+    p.add_argument(
+        "--no-eval", action="store_true", help="do not evaluate (a dataset without test views)"
+    )
     add_threads_argument(p)
     p.add_argument(
         "--backend",
         default="auto",
-        choices=("auto", "cpp", "torch", "compile"),
+        choices=BACKENDS,
         help="hash-grid/marching implementation (auto: C++ kernels when they build)",
     )
-    p.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
+    p.add_argument("--checkpoint-every", default="500", help="steps between checkpoints")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_config_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Train, evaluate, print the test metrics."""
+    """Check every option, train, evaluate, write cost.json, print the test metrics."""
     from dronecap import workspace
     from dronecap.errors import InputError
     from dronecap.nerf.config import config_from_args
+    from dronecap.nerf.resolve import check_config
 
     try:
         cfg = config_from_args(args)
     except (ValueError, KeyError, TypeError) as err:
         raise InputError(str(err).strip("'\"")) from None
-    if cfg.steps < 0:
-        raise InputError(f"steps must be >= 0, got {cfg.steps}")
+    check_config(cfg)
+    check_threads(args.threads)
+    try:
+        every = int(args.checkpoint_every)
+    except ValueError:
+        every = 0
+    if every < 1:
+        raise InputError(
+            f"--checkpoint-every takes a positive integer, got {args.checkpoint_every!r}"
+        )
+    if args.resume_from and args.no_resume:
+        raise InputError("give --resume-from or --no-resume, not both")
     dataset = workspace.resolve(args.workdir, args.dataset, workspace.DATASET)
     out = workspace.resolve(args.workdir, args.out, workspace.TRAIN_RUN)
-    from dronecap.nerf.trainer import train_run
+    from dronecap.commands.cost import write_run_cost
+    from dronecap.nerf.run_dir import train_run
 
     use_torch_threads(args.threads)
     m = train_run(
@@ -57,13 +81,19 @@ def run(args: argparse.Namespace) -> int:
         out,
         resume=not args.no_resume,
         progress=not args.no_progress,
-        checkpoint_every=max(1, args.checkpoint_every),
+        checkpoint_every=every,
         backend=args.backend,
+        evaluate=not args.no_eval,
+        resume_from=args.resume_from,
+    )
+    write_run_cost(out)
+    done = (
+        f"{out}: {m['steps']} steps in {m['train_seconds']:.0f} s "
+        f"({m['ms_per_step_median'] or 0:.1f} ms/step)"
     )
     t = m["test"]
-    print(
-        f"{out}: {m['steps']} steps in {m['train_seconds']:.0f} s "
-        f"({m['ms_per_step_median'] or 0:.1f} ms/step), test PSNR {t['psnr']:.2f} dB, "
-        f"SSIM {t['ssim']:.3f} over {t['views']} views"
-    )
+    if t is None:
+        print(f"{done}, not evaluated (--no-eval)")
+    else:
+        print(f"{done}, test PSNR {t['psnr']:.2f} dB, SSIM {t['ssim']:.3f} over {t['views']} views")
     return 0

@@ -9,16 +9,8 @@ from pathlib import Path
 import pytest
 
 from dronecap.cli import main
-from dronecap.gap9.search import (
-    Budget,
-    Point,
-    choose,
-    config_from_dict,
-    pareto_front,
-    parse_set,
-    search,
-)
-from dronecap.nerf.config import preset
+from dronecap.gap9.search import Budget, Point, choose, pareto_front, search
+from dronecap.nerf.config import apply_sets, config_from_dict, preset
 
 
 def _metrics(run: Path, name: str, psnr: float) -> Path:
@@ -36,13 +28,31 @@ def test_report_preset_writes_json(tmp_path, capsys):
     assert rep["config"]["batch_samples"] == 4096 and rep["config"]["log2_hashmap"] == 11
 
 
+def _run_json(run: Path, cfg) -> None:
+    """A run folder's run.json holding ``cfg`` as its resolved configuration."""
+    import numpy as np
+
+    from dronecap.nerf.resolve import Resolved, Scene
+
+    run.mkdir(parents=True)
+    scene = Scene(np.array([[-1.0, -1, -1], [1, 1, 1]]), 3.0, 200.0, 1, (0.0,))
+    doc = {"dataset": "gone.h5"} | Resolved(cfg, scene, {"n_max": "test"}).to_dict()
+    (run / "run.json").write_text(json.dumps(doc))
+
+
 def test_report_run_dir_and_set(tmp_path):
-    _metrics(tmp_path / "run", "tiny-dronerf", 26.9)
+    # the resolved values (auto-sized n_max 223, gray, 120 px, 37 images) are what is costed
+    cfg = preset("tiny-dronerf-sized").replace(
+        n_max=223, channels=1, resolution=120, train_images=37
+    )
+    _run_json(tmp_path / "run", cfg)
     args = ["cost", str(tmp_path / "run"), "--set", "log2_hashmap=12", "--set", "grid_res=64"]
     assert main(args) == 0
     rep = json.loads((tmp_path / "run" / "cost.json").read_text())
     assert rep["config"]["log2_hashmap"] == 12 and rep["config"]["grid_res"] == 64
     assert rep["counts"]["grid_cells"] == 64**3
+    assert rep["config"]["n_max"] == 223 and rep["config"]["channels"] == 1
+    assert rep["config"]["resolution"] == 120 and rep["assumptions"]["n_images"] == 37
 
 
 @pytest.mark.parametrize(
@@ -54,18 +64,47 @@ def test_report_run_dir_and_set(tmp_path):
         ["--platform", "missing.yaml"],
         ["--search", "--budget-l3", "32 parsecs"],
         ["--search"],
+        ["--images", "-5"],
+        ["--images", "0"],
+        ["--spp", "0"],
+        ["--spp", "nan"],
+        ["--top", "0"],
+        ["--set", "lr=nan"],
+        ["--set", "batch_samples=0"],
+        ["--set", "precision=fp8"],
+        ["--platform", "{tmp}/fast.yaml"],
+        ["--platform", "{tmp}/negative.yaml"],
+        ["--platform", "{tmp}/broken.yaml"],
     ],
 )
 def test_bad_inputs_are_one_line_errors(tmp_path, capsys, argv):
+    (tmp_path / "fast.yaml").write_text("clock_hz: fast\n")
+    (tmp_path / "negative.yaml").write_text("numerics:\n  act_bytes: -2\n")
+    (tmp_path / "broken.yaml").write_text("clock_hz: [1,\n")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     assert main(["cost", "--workdir", str(tmp_path), *argv]) == 1
     err = capsys.readouterr().err
     assert err.startswith("dronecap cost: error:") and err.count("\n") == 1
     assert not (tmp_path / "cost.json").exists()
 
 
-def test_run_dir_without_config(tmp_path):
+def test_run_dir_without_config(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert main(["cost", str(tmp_path / "empty")]) == 1
+    assert "no run.json" in capsys.readouterr().err
+
+
+def test_old_run_dir_without_its_dataset_gets_one_line(tmp_path, capsys):
+    """A run.json from before resolved configs (config + n_max beside it) whose dataset is
+    gone cannot say what was trained: one clear line, no report."""
+    run = tmp_path / "old"
+    run.mkdir()
+    old = {"dataset": str(tmp_path / "gone.h5"), "config": dataclasses.asdict(preset("test"))}
+    (run / "run.json").write_text(json.dumps(old | {"n_max": 223}))
+    assert main(["cost", str(run)]) == 1
+    err = capsys.readouterr().err
+    assert "older dronecap" in err and err.count("\n") == 1
+    assert not (run / "cost.json").exists()
 
 
 def test_table2_prints_all_rows(capsys):
@@ -141,10 +180,10 @@ def test_pareto_and_choice():
 
 
 def test_parse_set_and_config_from_dict():
-    cfg = parse_set(preset("tiny-dronerf"), ["batch_samples=4096", "lr=0.5", "auto_n_max=true"])
+    cfg = apply_sets(preset("tiny-dronerf"), ["batch_samples=4096", "lr=0.5", "auto_n_max=true"])
     assert (cfg.batch_samples, cfg.lr, cfg.auto_n_max) == (4096, 0.5, True)
-    assert parse_set(cfg, ["betas=0.8,0.9"]).betas == (0.8, 0.9)
+    assert apply_sets(cfg, ["betas=0.8,0.9"]).betas == (0.8, 0.9)
     with pytest.raises(ValueError):
-        parse_set(cfg, ["auto_n_max=maybe"])
+        apply_sets(cfg, ["auto_n_max=maybe"])
     back = config_from_dict({**dataclasses.asdict(cfg), "unknown": 1})
     assert back == cfg

@@ -35,9 +35,11 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 
 def render_cube(c2w: np.ndarray, k: Intrinsics, half: float = 0.5):
-    """RGB [H, W, 3] float and alpha [H, W] of the cube [-half, half]^3 (face colours)."""
+    """RGB [H, W, 3] float and alpha [H, W] of the cube [-half, half]^3 (face colours), seen
+    through the camera's lens model (OpenCV undoes the distortion of each pixel centre)."""
     v, u = np.mgrid[0 : k.height, 0 : k.width]
-    d = np.stack([(u + 0.5 - k.cx) / k.fx, (v + 0.5 - k.cy) / k.fy, np.ones_like(u, float)], -1)
+    xy = k.undistort_points(np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1))
+    d = np.concatenate([xy, np.ones((xy.shape[0], 1))], 1).reshape(k.height, k.width, 3)
     d = d @ c2w[:3, :3].T
     o = np.broadcast_to(c2w[:3, 3], d.shape)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -54,15 +56,24 @@ def render_cube(c2w: np.ndarray, k: Intrinsics, half: float = 0.5):
     return rgb, hit.astype(float)
 
 
-def cube_dataset(n: int = 12, size: int = 24, channels: int = 3, test_every: int = 4) -> Dataset:
-    """``n`` views on a circle (radius 3, slightly above) of the coloured cube; every
-    ``test_every``-th view is a test view. AABB [-1, 1]^3, white background."""
+def cube_dataset(
+    n: int = 12,
+    size: int = 24,
+    channels: int = 3,
+    test_every: int = 4,
+    model: str = "PINHOLE",
+    distortion: tuple[float, ...] = (),
+    radius: float = 3.0,
+) -> Dataset:
+    """``n`` views on a circle (``radius``, slightly above) of the coloured cube through a
+    camera of the given lens ``model``/``distortion``; every ``test_every``-th view is a test
+    view. AABB [-1, 1]^3, white background."""
     f = size / (2 * np.tan(0.5 * 0.8))
-    k = Intrinsics(f, f, size / 2, size / 2, size, size)
+    k = Intrinsics(f, f, size / 2, size / 2, size, size, model, tuple(distortion))
     poses, imgs, alphas = [], [], []
     for i in range(n):
         th = 2 * np.pi * i / n
-        eye = np.array([3 * np.cos(th), 3 * np.sin(th), 1.2])
+        eye = np.array([radius * np.cos(th), radius * np.sin(th), 0.4 * radius])
         c2w = look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0]))
         rgb, a = render_cube(c2w, k)
         if channels == 1:
@@ -77,7 +88,7 @@ def cube_dataset(n: int = 12, size: int = 24, channels: int = 3, test_every: int
         poses=np.stack(poses),
         intrinsics=k,
         split=split,
-        near_far=np.tile([1.5, 4.5], (n, 1)),
+        near_far=np.tile([radius - 1.5, radius + 1.5], (n, 1)),
         aabb=np.array([[-1.0, -1, -1], [1, 1, 1]]),
         background=(1.0,) * channels,
     )
@@ -101,3 +112,9 @@ def cube_gray_h5(tmp_path_factory) -> Path:
     return write_dataset(
         tmp_path_factory.mktemp("cube_gray") / "dataset.h5", cube_dataset(channels=1)
     )
+
+
+@pytest.fixture(scope="session")
+def make_cube():
+    """:func:`cube_dataset` itself, for tests that need other sizes or lenses."""
+    return cube_dataset

@@ -65,7 +65,7 @@ def test_gray_dataset_trains_one_channel_head(cube_gray_h5, tmp_path):
         == 0
     )
     m = json.loads((run / "metrics.json").read_text())
-    assert m["channels"] == 1 and m["config"]["auto_n_max"] is True
+    assert m["config"]["channels"] == 1 and m["config"]["auto_n_max"] is True
 
 
 @pytest.mark.data

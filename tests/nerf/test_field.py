@@ -6,7 +6,8 @@ import numpy as np
 import torch
 
 from dronecap.nerf.config import preset
-from dronecap.nerf.field import Field, auto_n_max, trunc_exp
+from dronecap.nerf.field import Field, trunc_exp
+from dronecap.nerf.resolve import auto_n_max
 from dronecap.nerf.sh import sh_encode
 
 AABB = np.array([[-1.0, -1, -1], [1, 1, 1]])
@@ -49,7 +50,7 @@ def test_auto_n_max_by_hand():
 def test_field_shapes_channels_and_extreme_points():
     cfg = preset("test")
     for c in (1, 3):
-        f = Field(cfg, c, AABB, 64, backend="torch")
+        f = Field(cfg.replace(n_max=64), c, AABB, backend="torch")
         pts = torch.tensor([[-1.0, -1, -1], [1, 1, 1], [5, -7, 0.2], [0, 0, 0]], requires_grad=True)
         d = torch.nn.functional.normalize(torch.randn(4, 3), dim=-1)
         col, sig = f(pts, d)
@@ -61,7 +62,7 @@ def test_field_shapes_channels_and_extreme_points():
 
 def test_fp16_field_rounds_activations():
     cfg = preset("test").replace(precision="fp16")
-    f = Field(cfg, 3, AABB, 64, backend="torch")
+    f = Field(cfg.replace(n_max=64), 3, AABB, backend="torch")
     with torch.no_grad():
         f.encoding.table.normal_(0, 1)
     _, geo = f.geometry(torch.rand(32, 3) * 2 - 1)

@@ -159,7 +159,9 @@ def test_backends_agree_and_bad_backend_raises(cpp):
     assert outs[0].shape == (x.shape[0], grids[0].out_dim) == (209, 8)
     torch.testing.assert_close(outs[1], outs[0])
     torch.testing.assert_close(outs[2], outs[0])
-    with pytest.raises(ValueError, match="unknown backend"):
+    from dronecap.errors import InputError
+
+    with pytest.raises(InputError, match="unknown backend"):
         HashGrid(4, 2, 8, 4, 64, backend="cuda")
 
 
@@ -177,21 +179,50 @@ def test_inplace_grad_accumulates_like_autograd(cpp, dtype):
     torch.testing.assert_close(fused.table.grad, plain.table.grad, rtol=1e-5, atol=1e-6)
 
 
-def test_auto_falls_back_to_reference_when_the_kernel_cannot_build(monkeypatch):
-    from dronecap.nerf import hashgrid
+def test_auto_falls_back_to_reference_when_the_kernel_cannot_build(monkeypatch, capsys):
+    from dronecap.errors import InputError
+    from dronecap.nerf import backend
 
-    def no_compiler():
+    def no_compiler(name):
         raise RuntimeError("no C++ compiler in this test")
 
-    monkeypatch.setattr(hashgrid, "load_extension", no_compiler)
+    monkeypatch.setattr(backend, "load", no_compiler)
+    monkeypatch.setattr(backend, "_said", set())
     x = edge_points(50)
     grid = HashGrid(4, 2, 8, 4, 64, backend="auto")
-    with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler in this test"):
-        out = grid(x)
+    out = grid(x)
     expected = hash_encode_reference(x, grid.table, grid.resolutions, grid.offsets, 8)
     torch.testing.assert_close(out, expected)
-    with pytest.raises(RuntimeError, match="no C\\+\\+ compiler"):
+    HashGrid(4, 2, 8, 4, 64, backend="auto")(x)  # the notice comes once per process
+    err = capsys.readouterr().err
+    assert err.count("using the PyTorch reference kernels, ~8x slower") == 1
+    assert "no C++ compiler in this test" in err
+    with pytest.raises(InputError, match="cannot be built: no C\\+\\+ compiler"):
         HashGrid(4, 2, 8, 4, 64, backend="cpp")(x)
+
+
+def test_kernel_cache_key_follows_torch_python_and_source(monkeypatch, tmp_path):
+    """The build folder changes with the torch version, the Python version and the C++ source,
+    so two installs on one machine never share (and rebuild) each other's kernel."""
+    import sys
+
+    from dronecap.nerf import backend
+
+    base = backend.cache_key("hashgrid")
+    assert base == backend.cache_key("hashgrid")  # deterministic
+    assert base != backend.cache_key("march")  # another source
+    monkeypatch.setattr(torch, "__version__", "0.0.0-other")
+    other_torch = backend.cache_key("hashgrid")
+    monkeypatch.undo()
+    monkeypatch.setattr(sys, "version", "2.7.18 (other)")
+    other_python = backend.cache_key("hashgrid")
+    monkeypatch.undo()
+    src = tmp_path / "hashgrid.cpp"
+    src.write_bytes((backend.CSRC / "hashgrid.cpp").read_bytes() + b"// edited\n")
+    monkeypatch.setattr(backend, "CSRC", tmp_path)
+    other_source = backend.cache_key("hashgrid")
+    assert len({base, other_torch, other_python, other_source}) == 4
+    assert backend.build_dir("hashgrid").name == f"hashgrid-{other_source}"
 
 
 def test_stale_torch_build_lock_does_not_hang() -> None:
@@ -199,10 +230,10 @@ def test_stale_torch_build_lock_does_not_hang() -> None:
     import subprocess
     import sys
 
-    from dronecap.nerf.hashgrid import extension_build_dir, load_extension
+    from dronecap.nerf.backend import build_dir
 
     load_extension()  # built (or loaded from the cache) in this process
-    lock = extension_build_dir("hashgrid") / "lock"
+    lock = build_dir("hashgrid") / "lock"
     lock.touch()
     code = "from dronecap.nerf.hashgrid import load_extension; load_extension()"
     done = subprocess.run([sys.executable, "-c", code], timeout=300, capture_output=True)

@@ -146,7 +146,7 @@ def test_render_rays_matches_packed_reference(cube_rgb, monkeypatch):
     """Marching and evaluating in rounds (rays stopped at a few samples per round and resumed)
     gives the colours of the plain packed renderer over every sample; early termination and
     skipped faint samples change them by at most their thresholds."""
-    import dronecap.nerf.trainer as trainer_mod
+    import dronecap.nerf.render as render_mod
     from dronecap.nerf.rays import camera_rays, ray_aabb
 
     tr = Trainer(_cfg(), cube_rgb)
@@ -154,7 +154,7 @@ def test_render_rays_matches_packed_reference(cube_rgb, monkeypatch):
     k = cube_rgb.intrinsics
     vv, uu = torch.meshgrid(torch.arange(k.height), torch.arange(k.width), indexing="ij")
     pose = torch.as_tensor(cube_rgb.poses[0], dtype=torch.float32)
-    origins, dirs = camera_rays(pose, k.fx, k.fy, k.cx, k.cy, uu.reshape(-1), vv.reshape(-1))
+    origins, dirs = camera_rays(pose, k, uu.reshape(-1), vv.reshape(-1))
     bg = torch.tensor([0.2, 0.5, 0.8])
     with torch.no_grad():
         t_near, t_far, _ = ray_aabb(origins, dirs, tr.aabb)
@@ -164,7 +164,7 @@ def test_render_rays_matches_packed_reference(cube_rgb, monkeypatch):
     exact = dict(min_transmittance=0.0, min_weight=0.0)
     default = tr.render_rays(origins, dirs, bg)
     whole = tr.render_rays(origins, dirs, bg, **exact)
-    monkeypatch.setattr(trainer_mod, "RENDER_ROUND", 3)
+    monkeypatch.setattr(render_mod, "RENDER_ROUND", 3)
     rounds = tr.render_rays(origins, dirs, bg, **exact)
     torch.testing.assert_close(whole, ref, atol=1e-5, rtol=0)
     torch.testing.assert_close(rounds, ref, atol=1e-5, rtol=0)

@@ -1,0 +1,134 @@
+"""The one door to the C++/OpenMP kernels: building, caching, and the fallback rule.
+
+The hash grid (``csrc/hashgrid.cpp``) and the ray marcher (``csrc/march.cpp``) are compiled
+on first use with ``torch.utils.cpp_extension`` and cached on disk under
+``$XDG_CACHE_HOME/dronecap/torch_extensions/<name>-<key>`` (``~/.cache`` by default), where
+the key hashes the torch version, the Python version, the kernel's C++ source and the CPU's
+instruction-set flags (builds use ``-march=native``): two installs on one machine, or a
+shared home on two CPUs, never load or rebuild each other's build.
+
+Fallback rule (:func:`kernel`), the same for every kernel: backend ``"torch"`` or
+``"compile"`` -> the PyTorch reference; ``"cpp"`` -> the kernel or an error; ``"auto"`` -> the
+kernel when it builds, else the PyTorch reference with one notice on stderr per process.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import sys
+from pathlib import Path
+
+from dronecap.errors import InputError
+
+BACKENDS = ("auto", "cpp", "compile", "torch")
+CSRC = Path(__file__).parent / "csrc"
+# kernel name -> (C++ source in csrc/, extra compiler flags)
+KERNELS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "hashgrid": ("hashgrid.cpp", ()),
+    # no fused multiply-add: the float32 results match the reference's tensor arithmetic
+    "march": ("march.cpp", ("-ffp-contract=off",)),
+}
+FALLBACK_NOTICE = (
+    "dronecap: no working C++ compiler ({err}); using the PyTorch reference kernels, "
+    "~8x slower (install g++ to get the fast path)"
+)
+BUILD_NOTICE = "dronecap: building C++ kernels (once, ~40 s)"
+
+_loaded: dict[str, object] = {}
+_said: set[str] = set()
+
+
+def _say_once(message: str) -> None:
+    """Print ``message`` on stderr the first time it comes up in this process."""
+    if message not in _said:
+        _said.add(message)
+        print(message, file=sys.stderr, flush=True)
+
+
+def _cpu_flags() -> str:
+    """The CPU's instruction-set flags line of /proc/cpuinfo (``""`` when unreadable)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.machine()
+    return next((line for line in text.splitlines() if line.startswith("flags")), "")
+
+
+def cache_key(name: str) -> str:
+    """12 hex digits naming a build of kernel ``name``: sha256 of the torch version, Python
+    version, the kernel's C++ source and flags, and the CPU flags."""
+    import torch
+
+    source, flags = KERNELS[name]
+    h = hashlib.sha256()
+    for part in (torch.__version__, sys.version, " ".join(flags), _cpu_flags()):
+        h.update(part.encode() + b"\0")
+    h.update((CSRC / source).read_bytes())
+    return h.hexdigest()[:12]
+
+
+def build_dir(name: str) -> Path:
+    """Where kernel ``name`` is built and cached (see the module docstring)."""
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return cache / "dronecap" / "torch_extensions" / f"{name}-{cache_key(name)}"
+
+
+def load(name: str):
+    """The compiled kernel module ``name`` (built on first use, then cached on disk).
+
+    Raises whatever the compiler or loader raises when the kernel cannot be built.
+    """
+    if name not in _loaded:
+        import fcntl
+
+        from torch.utils import cpp_extension
+
+        source, flags = KERNELS[name]
+        folder = build_dir(name)
+        folder.mkdir(parents=True, exist_ok=True)
+        # torch marks a build in progress with a plain `lock` file and waits forever for it to
+        # go away; a build killed mid-way leaves it behind and every later process hangs. Our
+        # flock is released by the OS when its holder dies, so while we hold it no other
+        # dronecap process is building and any `lock` file is stale.
+        with open(folder / ".dronecap-build.lock", "w") as guard:
+            fcntl.flock(guard, fcntl.LOCK_EX)
+            (folder / "lock").unlink(missing_ok=True)
+            if not (folder / f"dronecap_{name}.so").exists():
+                _say_once(BUILD_NOTICE)
+            _loaded[name] = cpp_extension.load(
+                name=f"dronecap_{name}",
+                sources=[str(CSRC / source)],
+                extra_cflags=["-O3", "-march=native", "-fopenmp", *flags],
+                extra_ldflags=["-fopenmp"],
+                build_directory=str(folder),
+                verbose=False,
+            )
+    return _loaded[name]
+
+
+def check_backend(backend: str) -> None:
+    """Raise InputError unless ``backend`` is one of :data:`BACKENDS`."""
+    if backend not in BACKENDS:
+        raise InputError(f"unknown backend {backend!r}; use one of {', '.join(BACKENDS)}")
+
+
+def kernel(name: str, backend: str = "auto"):
+    """The compiled kernel ``name`` to use under ``backend``, or None for the PyTorch
+    reference (the fallback rule of the module docstring).
+
+    Raises:
+        InputError: an unknown backend, or ``backend == "cpp"`` and the kernel cannot be built.
+    """
+    check_backend(backend)
+    if backend in ("torch", "compile"):
+        return None
+    try:
+        return load(name)
+    except Exception as err:  # a missing compiler or a build failure of any kind
+        if backend == "cpp":
+            raise InputError(f"the C++ kernel {name!r} cannot be built: {err}") from None
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        _say_once(FALLBACK_NOTICE.format(err=first[:120]))
+        return None

@@ -1,0 +1,190 @@
+"""Resolve a training configuration against its dataset, once, into one object.
+
+A :class:`TrainConfig` as the user gave it leaves some values to the data: ``n_max`` when
+``auto_n_max`` (the scene-sized finest level), the channel count, the image size and the number
+of training images. :func:`resolve` decides them from the dataset and returns a
+:class:`Resolved`: the config with those values filled in (``config``; its ``n_max`` is the one
+the model is built with), the scene the trainer takes from the dataset (bounds, near distance,
+focal, background), the reason for each decided value, and the dataset's content hash.
+
+The trainer, the checkpoint, ``run.json``, ``metrics.json``, ``cost.json`` and ``dronecap cost
+RUN_DIR`` all read this one object, so the cost report models the network that was trained.
+No torch here (the cost command reads run folders without it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from dronecap.datasets.format import Dataset
+from dronecap.errors import InputError
+
+from .config import TrainConfig, config_from_dict, problems
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """What the trainer takes from a dataset besides its pixels (all in scene units)."""
+
+    aabb: np.ndarray  # float64 [2, 3]
+    near: float  # mean near distance of the training views
+    focal: float  # mean focal length (pixels)
+    channels: int  # C
+    background: tuple[float, ...]  # evaluation background, C values in [0, 1]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form (the AABB as nested lists)."""
+        return dataclasses.asdict(self) | {"aabb": np.asarray(self.aabb, float).tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Scene:
+        """Inverse of :meth:`to_dict` (also reads checkpoints written before resolving)."""
+        return cls(
+            np.asarray(d["aabb"], float),
+            float(d["near"]),
+            float(d["focal"]),
+            int(d["channels"]),
+            tuple(float(x) for x in d["background"]),
+        )
+
+
+def training_frames(ds: Dataset) -> np.ndarray:
+    """Indices of the frames to train on: split 0 when the dataset has a split, else all.
+
+    Raises:
+        InputError: the dataset has a split but no frame in its train part (training on the
+            test views and reporting them as test scores would be a wrong answer).
+    """
+    if ds.split is None:
+        return np.arange(ds.n)
+    idx = np.flatnonzero(ds.split == 0)
+    if idx.size == 0:
+        raise InputError(
+            f"the dataset's split has no train frames (of {ds.n} frames: "
+            f"{int(np.sum(ds.split == 1))} val, {int(np.sum(ds.split == 2))} test); "
+            "re-run `dronecap split`"
+        )
+    return idx
+
+
+def scene_of(ds: Dataset) -> Scene:
+    """Bounds, near distance, focal, channels and background of ``ds`` (InputError when
+    poses, intrinsics or the AABB are missing, or it has no train frames)."""
+    if ds.poses is None or ds.intrinsics is None:
+        raise InputError("dataset has no poses/intrinsics: run `dronecap sfm` first")
+    if ds.aabb is None:
+        raise InputError("dataset has no scene AABB (attrs 'aabb')")
+    train = training_frames(ds)
+    if ds.near_far is not None:
+        near = float(np.mean(ds.near_far[train, 0]))
+    else:
+        centre = np.mean(ds.aabb, 0)
+        near = float(np.mean(np.linalg.norm(ds.poses[train, :3, 3] - centre, axis=1)))
+    bg = ds.background if ds.background is not None else (0.0,) * ds.channels
+    k = ds.intrinsics
+    focal = 0.5 * float(k.fx + k.fy)
+    return Scene(np.asarray(ds.aabb, float), near, focal, ds.channels, tuple(bg))
+
+
+def auto_n_max(aabb: np.ndarray, near: float, focal: float) -> int:
+    """Finest useful grid resolution: AABB extent over the pixel footprint at distance ``near``.
+
+    Args:
+        aabb: [2, 3] scene bounds (scene units).
+        near: typical camera-to-surface distance (scene units), e.g. the mean near distance.
+        focal: focal length in pixels.
+
+    Returns:
+        cells per axis (at least 16), the extent of the largest AABB side in pixel footprints.
+    """
+    extent = float(np.max(aabb[1] - aabb[0]))
+    footprint = max(near, 1e-6) / focal
+    return max(16, int(math.ceil(extent / footprint)))
+
+
+@dataclass(frozen=True, eq=False)
+class Resolved:
+    """A configuration resolved against its dataset (see the module docstring).
+
+    ``config`` holds every value the model is built and costed with: ``n_max`` (auto-sized
+    when ``auto_n_max``), ``channels``, ``resolution`` (image width) and ``train_images``
+    from the data. ``reasons`` says why each of those four has its value.
+    """
+
+    config: TrainConfig
+    scene: Scene
+    reasons: dict[str, str]
+    dataset_sha256: str | None = None  # content hash of the dataset file (None: in memory)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form, as stored in run.json, metrics.json and the checkpoint."""
+        return {
+            "config": dataclasses.asdict(self.config),
+            "scene": self.scene.to_dict(),
+            "reasons": dict(self.reasons),
+            "dataset_sha256": self.dataset_sha256,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Resolved:
+        """Inverse of :meth:`to_dict` (ValueError/KeyError/TypeError when malformed)."""
+        return cls(
+            config_from_dict(d["config"]),
+            Scene.from_dict(d["scene"]),
+            {str(k): str(v) for k, v in d.get("reasons", {}).items()},
+            d.get("dataset_sha256"),
+        )
+
+
+def check_config(cfg: TrainConfig) -> None:
+    """Raise InputError listing every out-of-range field of ``cfg`` (nothing when fine)."""
+    bad = problems(cfg)
+    if bad:
+        raise InputError("bad configuration: " + "; ".join(bad))
+
+
+def resolve(cfg: TrainConfig, ds: Dataset, dataset_sha256: str | None = None) -> Resolved:
+    """Resolve ``cfg`` against ``ds`` (see the module docstring).
+
+    Raises:
+        InputError: an out-of-range field, or a dataset the trainer cannot use (no poses,
+            intrinsics or AABB; a split without train frames).
+    """
+    check_config(cfg)
+    scene = scene_of(ds)
+    h, w = ds.hw
+    n_train = int(training_frames(ds).size)
+    if cfg.auto_n_max:
+        n_max = max(auto_n_max(scene.aabb, scene.near, scene.focal), cfg.n_min)
+        why_n = (
+            f"auto_n_max: largest AABB side {float(np.max(scene.aabb[1] - scene.aabb[0])):.3g} "
+            f"over the pixel footprint at the mean near distance ({scene.near:.3g} / "
+            f"focal {scene.focal:.1f} px)"
+        )
+    else:
+        n_max, why_n = cfg.n_max, "set by the configuration"
+    split = "the train split" if ds.split is not None else "all frames (the dataset has no split)"
+    reasons = {
+        "n_max": why_n,
+        "channels": f"the dataset's images ({ds.channels} channel{'s' * (ds.channels > 1)})",
+        "resolution": f"the dataset's image width ({w}x{h} px)",
+        "train_images": f"frames in {split}",
+    }
+    config = cfg.replace(n_max=n_max, channels=ds.channels, resolution=w, train_images=n_train)
+    return Resolved(config, scene, reasons, dataset_sha256)
+
+
+def legacy_resolved(config: dict[str, Any], scene: dict[str, Any]) -> Resolved:
+    """The :class:`Resolved` of a checkpoint written before configs were resolved (its config
+    and scene dicts): ``n_max`` re-derived from the scene exactly as the trainer of the time
+    did; resolution and image count stay as the config had them (unknown then)."""
+    cfg = config_from_dict(config)
+    sc = Scene.from_dict(scene)
+    n_max = auto_n_max(sc.aabb, sc.near, sc.focal) if cfg.auto_n_max else cfg.n_max
+    reasons = {"n_max": "re-derived from a checkpoint written before resolved configs"}
+    return Resolved(cfg.replace(n_max=n_max, channels=sc.channels), sc, reasons, None)

@@ -1,0 +1,341 @@
+"""Training run folders: their file names, training into one, evaluating one, reopening one.
+
+A run folder (``dronecap train --out RUN``) holds:
+
+=================== ========================================================================
+``checkpoint.pt``   the trainer's full state, resolved configuration included (resumable)
+``run.json``        the dataset (path and content hash) and the resolved configuration
+                    (:class:`~nerf.resolve.Resolved`: config, scene, reasons)
+``metrics.json``    test PSNR/SSIM per view and mean, train time, ms/step, parameter count,
+                    the resolved config (written by ``train`` only)
+``eval_<stem>.json`` one per dataset ``dronecap eval`` scored the model on
+``renders/``        test views as PNGs; ``compare.png``: ground truth | render
+``cost.json``       the GAP9 cost of the resolved config (written by the train command)
+=================== ========================================================================
+
+:func:`read_resolved` is the one reader of a run's configuration (the cost command uses it).
+Torch is imported only by the functions that train or render.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from dronecap.datasets.format import Dataset, open_dataset
+from dronecap.errors import InputError
+from dronecap.files import atomic_output, sha256_file
+
+from .config import TrainConfig, config_from_dict
+from .resolve import Resolved, resolve
+
+if TYPE_CHECKING:
+    from .trainer import Trainer
+
+CHECKPOINT = "checkpoint.pt"
+METRICS = "metrics.json"
+RUN_INFO = "run.json"
+COST = "cost.json"
+RENDERS = "renders"
+COMPARE = "compare.png"
+COMPARE_VIEWS = 4  # test views in the ground truth | render image
+DATASET_KINDS = ("dataset", "shard")
+# fields a resumed run may change: the step target, and what the data decides (a model
+# continued on another dataset keeps the n_max it was built with)
+RESUMABLE_CHANGES = ("steps", "channels", "resolution", "train_images")
+
+
+def eval_file(dataset: str | Path) -> str:
+    """Name of the result file ``dronecap eval`` writes for ``dataset``: eval_<stem>.json."""
+    return f"eval_{Path(dataset).stem}.json"
+
+
+def write_json(path: str | Path, obj: dict) -> None:
+    """Write ``obj`` as indented JSON, atomically (NaN/inf refused: never silently written)."""
+    text = json.dumps(obj, indent=2, default=float, allow_nan=False) + "\n"
+    with atomic_output(path) as tmp:
+        Path(tmp).write_text(text)
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise InputError(f"unreadable ({err})", path) from None
+    if not isinstance(doc, dict):
+        raise InputError("expected a JSON object", path)
+    return doc
+
+
+def read_resolved(run_dir: str | Path) -> Resolved:
+    """The resolved configuration a run folder was trained with (from its run.json).
+
+    A run.json written before configs were resolved (``config`` + ``n_max``) is re-resolved
+    against the dataset it names, which gives the same values; InputError when that dataset is
+    gone or the file is not a run's.
+    """
+    path = Path(run_dir) / RUN_INFO
+    if not path.exists():
+        raise InputError("not a training run folder (no run.json; run `dronecap train`)", run_dir)
+    doc = _read_json(path)
+    try:
+        if "scene" in doc:
+            return Resolved.from_dict(doc)
+        cfg = config_from_dict(doc["config"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(f"no usable resolved configuration ({err})", path) from None
+    dataset = Path(str(doc.get("dataset", "")))
+    if not dataset.is_file():
+        raise InputError(
+            f"written by an older dronecap and its dataset {dataset} is gone: the trained "
+            "resolution and image count are unknown (retrain the run)",
+            path,
+        )
+    return resolve(cfg, open_dataset(dataset, kinds=DATASET_KINDS))
+
+
+def _config_changes(old: TrainConfig, new: TrainConfig) -> list[str]:
+    """Fields (other than :data:`RESUMABLE_CHANGES`) whose values differ between two configs."""
+    a, b = dataclasses.asdict(old), dataclasses.asdict(new)
+    skip = set(RESUMABLE_CHANGES) | ({"n_max"} if old.auto_n_max and new.auto_n_max else set())
+    return [
+        k for k in a if k not in skip and tuple(np.atleast_1d(a[k])) != tuple(np.atleast_1d(b[k]))
+    ]
+
+
+def _warn(message: str) -> None:
+    print(f"dronecap: warning: {message}", file=sys.stderr, flush=True)
+
+
+def _resume(
+    source: Path,
+    ds: Dataset,
+    ds_path: Path,
+    wanted: Resolved,
+    other_ok: bool,
+    backend: str,
+) -> Trainer:
+    """The trainer of checkpoint ``source`` set to continue to ``wanted`` on ``ds`` (read
+    from ``ds_path``).
+
+    Raises InputError when it was trained with another configuration, or on another dataset
+    (content hash; run.json's path for checkpoints older than the hash) unless ``other_ok``.
+    """
+    from .trainer import Trainer
+
+    trainer = Trainer.load(source, ds, backend=backend)
+    old = trainer.resolved
+    same = old.dataset_sha256 == wanted.dataset_sha256
+    if old.dataset_sha256 is None:  # checkpoint older than the hash: compare the recorded path
+        info = source.parent / RUN_INFO
+        named = _read_json(info).get("dataset") if info.exists() else None
+        same = named is None or Path(str(named)).resolve() == ds_path.resolve()
+    if not same:
+        if not other_ok:
+            raise InputError(
+                "was trained on another dataset (its content hash differs); pass --no-resume "
+                "to start over, or --resume-from RUN_DIR with a new --out to continue that "
+                "model on this dataset",
+                source.parent,
+            )
+        _warn(f"continuing the model of {source} (trained on another dataset) on this one")
+    changed = _config_changes(old.config, wanted.config)
+    if changed:
+        raise InputError(
+            f"was trained with a different configuration ({', '.join(changed)}); "
+            "pass --no-resume to start over or choose another --out",
+            source,
+        )
+    reasons = {**wanted.reasons, "n_max": old.reasons.get("n_max", "the resumed model's")}
+    trainer.resolved = Resolved(
+        wanted.config.replace(n_max=old.config.n_max),
+        old.scene,
+        reasons,
+        wanted.dataset_sha256,
+    )
+    trainer.cfg = trainer.resolved.config
+    return trainer
+
+
+def train_run(
+    dataset_path: str | Path,
+    cfg: TrainConfig,
+    out_dir: str | Path,
+    resume: bool = True,
+    progress: bool = True,
+    checkpoint_every: int = 500,
+    backend: str = "auto",
+    evaluate: bool = True,
+    resume_from: str | Path | None = None,
+) -> dict:
+    """Train on a dataset file into a run folder, checkpointing, then evaluate all test views.
+
+    Everything is checked before training starts: the configuration's ranges, the dataset
+    (train frames; test or val views unless ``evaluate`` is False), a checkpoint in
+    ``out_dir`` (resumed when ``resume``: same configuration, same dataset by content hash).
+    ``resume_from`` (a run folder or checkpoint) continues that model instead, on this dataset
+    even if it was trained on another one (with a warning).
+
+    Returns:
+        the metrics written to ``metrics.json`` (``test`` is None when not evaluated).
+
+    Raises:
+        InputError: unreadable dataset, bad configuration, a run folder trained with another
+            configuration or dataset, no test views to evaluate, or a diverged training.
+    """
+    from dronecap.progress import progress_bar
+
+    from .evaluate import test_views
+    from .trainer import Trainer
+
+    dataset_path = Path(dataset_path)
+    out = Path(out_dir)
+    ds = open_dataset(dataset_path, kinds=DATASET_KINDS)
+    wanted = resolve(cfg, ds, sha256_file(dataset_path))
+    if evaluate and test_views(ds).size == 0:
+        raise InputError(
+            "has no test or val views to evaluate on: re-run `dronecap split`, or pass "
+            "--no-eval to train without a test score",
+            dataset_path,
+        )
+    ckpt = out / CHECKPOINT
+    if resume_from is not None:
+        source = Path(resume_from)
+        source = source / CHECKPOINT if source.is_dir() else source
+        trainer = _resume(source, ds, dataset_path, wanted, True, backend)
+    elif resume and ckpt.exists():
+        trainer = _resume(ckpt, ds, dataset_path, wanted, False, backend)
+    else:
+        trainer = Trainer(wanted, ds, backend=backend)
+    info = {"dataset": str(dataset_path.resolve())} | trainer.resolved.to_dict()
+    if resume_from is not None:
+        info["resumed_from"] = str(Path(resume_from).resolve())
+    write_json(out / RUN_INFO, info)
+    steps = trainer.cfg.steps
+    ms: list[float] = []
+    history: list[dict] = []
+    bar = progress_bar(
+        total=steps, initial=trainer.step, desc="train", unit="step", disable=not progress
+    )
+    try:
+        while trainer.step < steps:
+            log = trainer.train_step()
+            ms.append(log["ms"])
+            bar.update(1)
+            if trainer.step % 10 == 0 or trainer.step == steps:
+                bar.set_postfix(
+                    loss=f"{log['loss']:.4f}",
+                    psnr=f"{log['psnr']:.1f}",
+                    spr=f"{log['samples'] / max(log['rays'], 1):.1f}",
+                    ms=f"{np.median(ms[-50:]):.0f}",
+                )
+            if trainer.step % 100 == 0:
+                history.append(
+                    {k: log[k] for k in ("step", "loss", "psnr", "samples", "rays")}
+                    | {"seconds": trainer.train_seconds}
+                )
+            if trainer.step % checkpoint_every == 0 or trainer.step == steps:
+                trainer.save(ckpt)
+    except KeyboardInterrupt:
+        bar.close()
+        trainer.save(ckpt)
+        raise
+    bar.close()
+    if not ckpt.exists():  # zero steps asked: still leave a loadable run
+        trainer.save(ckpt)
+    metrics = evaluate_run(trainer, ds, out, progress) if evaluate else {"test": None}
+    import torch
+
+    metrics |= {
+        "dataset": str(dataset_path.resolve()),
+        "steps": trainer.step,
+        "train_seconds": trainer.train_seconds,
+        "ms_per_step_median": float(np.median(ms)) if ms else None,
+        "threads": torch.get_num_threads(),
+        "parameters": trainer.field.parameter_count(),
+        "config": dataclasses.asdict(trainer.cfg),
+        "reasons": dict(trainer.resolved.reasons),
+        "history": history,
+    }
+    write_json(out / METRICS, metrics)
+    return metrics
+
+
+def evaluate_run(trainer: Trainer, ds: Dataset, out: Path, progress: bool = True) -> dict:
+    """Evaluate all test views, write their renders and ``compare.png``; {"test": scores}."""
+    from .evaluate import ground_truth
+    from .outputs import side_by_side, write_png
+
+    res = trainer.evaluate_all(ds, progress)
+    images = res.pop("images")
+    for v, img in zip(res["per_view"], images, strict=True):
+        write_png(out / RENDERS / f"test_{v['index']:03d}.png", img)
+    pairs = [
+        (ground_truth(ds, v["index"], trainer.scene.background), img)
+        for v, img in list(zip(res["per_view"], images, strict=True))[:COMPARE_VIEWS]
+    ]
+    if pairs:
+        write_png(out / COMPARE, side_by_side(pairs))
+    return {"test": res}
+
+
+def open_run(run_dir: str | Path, dataset: str | Path | None = None) -> tuple[Trainer, Dataset]:
+    """(trainer, dataset) of a run folder; ``dataset`` defaults to the one in ``run.json``.
+
+    Raises InputError when the folder holds no checkpoint, its weights are not finite, or the
+    dataset's channels differ from the model's.
+    """
+    from .trainer import Trainer
+
+    run_dir = Path(run_dir)
+    if not (run_dir / CHECKPOINT).exists():
+        raise InputError("not a training run (no checkpoint.pt; run `dronecap train`)", run_dir)
+    if dataset is None:
+        info_path = run_dir / RUN_INFO
+        if not info_path.exists():
+            raise InputError("no run.json naming the dataset; pass --dataset", run_dir)
+        dataset = _read_json(info_path).get("dataset")
+        if not isinstance(dataset, str):
+            raise InputError("names no dataset; pass --dataset", info_path)
+    ds = open_dataset(dataset, kinds=DATASET_KINDS)
+    trainer = Trainer.load(run_dir / CHECKPOINT)
+    if not trainer.weights_finite():
+        raise InputError("the checkpoint holds non-finite weights", run_dir / CHECKPOINT)
+    if ds.channels != trainer.scene.channels:
+        raise InputError(
+            f"has {ds.channels} channels but the run's model has {trainer.scene.channels}", dataset
+        )
+    return trainer, ds
+
+
+def eval_run(
+    run_dir: str | Path, dataset: str | Path | None = None, progress: bool = True
+) -> tuple[Path, dict]:
+    """Score a run's model on the test views of ``dataset`` (default: its own) into
+    ``RUN/eval_<dataset stem>.json`` (never metrics.json); returns (that path, the record).
+
+    Raises InputError (see :func:`open_run`) or when the dataset has no test or val views.
+    """
+    from .evaluate import test_views
+
+    run_dir = Path(run_dir)
+    trainer, ds = open_run(run_dir, dataset)
+    ds_path = Path(dataset) if dataset else Path(_read_json(run_dir / RUN_INFO)["dataset"])
+    if test_views(ds).size == 0:
+        raise InputError("has no test or val views to evaluate on", ds_path)
+    res = trainer.evaluate(ds, progress=progress)
+    record = {
+        "dataset": str(ds_path.resolve()),
+        "dataset_sha256": sha256_file(ds_path),
+        "trained_on_sha256": trainer.resolved.dataset_sha256,
+        "steps": trainer.step,
+        "test": res,
+    }
+    out = run_dir / eval_file(ds_path)
+    write_json(out, record)
+    return out, record

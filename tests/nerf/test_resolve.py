@@ -1,0 +1,59 @@
+"""Resolve once: the trained model, its run folder and its cost report hold one configuration."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from dronecap.cli import main
+from dronecap.errors import InputError
+from dronecap.nerf.config import PRESETS, preset
+from dronecap.nerf.resolve import Resolved, resolve
+
+
+def test_resolve_fills_in_what_the_data_decides(cube_rgb):
+    r = resolve(preset("test").replace(auto_n_max=True), cube_rgb)
+    # cube: AABB side 2, mean near 1.5, focal 24 / (2 tan 0.4) = 28.47 px
+    # -> footprint 1.5 / 28.47 = 0.0527 -> ceil(2 / 0.0527) = 38 cells
+    focal = 24 / (2 * math.tan(0.4))
+    assert r.config.n_max == math.ceil(2 / (1.5 / focal)) == 38
+    assert (r.config.channels, r.config.resolution, r.config.train_images) == (3, 24, 9)
+    assert set(r.reasons) == {"n_max", "channels", "resolution", "train_images"}
+    assert "auto_n_max" in r.reasons["n_max"]
+    # a fixed n_max stays, and says so
+    assert resolve(preset("test"), cube_rgb).config.n_max == 256
+    assert Resolved.from_dict(json.loads(json.dumps(r.to_dict()))).to_dict() == r.to_dict()
+
+
+def test_split_without_train_frames_is_refused(cube_rgb):
+    import dataclasses
+
+    only_test = dataclasses.replace(cube_rgb, split=np.full(cube_rgb.n, 2, np.int8))
+    with pytest.raises(InputError, match="no train frames"):
+        resolve(preset("test"), only_test)
+
+
+# every preset: train zero steps (the model is built, saved and costed), then compare
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_cost_json_and_cost_command_model_the_trained_n_max(name, cube_h5, tmp_path):
+    from dronecap.nerf.trainer import Trainer
+
+    run = tmp_path / "run"
+    argv = ["train", str(cube_h5), "--preset", name, "--steps", "0", "--out", str(run)]
+    assert main([*argv, "--no-eval", "--no-progress", "--threads", "1"]) == 0
+    from_train = json.loads((run / "cost.json").read_text())
+    assert main(["cost", str(run), "--json", str(tmp_path / "again.json")]) == 0
+    from_command = json.loads((tmp_path / "again.json").read_text())
+    assert from_train == from_command
+    trained = Trainer.load(run / "checkpoint.pt")
+    finest = trained.field.encoding.resolutions[-1]
+    assert from_train["config"]["n_max"] == finest == trained.cfg.n_max
+    assert from_train["config"]["channels"] == trained.field.color_mlp[-1].out_features == 3
+    assert from_train["config"]["resolution"] == 24 and from_train["assumptions"]["n_images"] == 9
+    run_info = json.loads((run / "run.json").read_text())
+    assert run_info["config"]["n_max"] == finest and "n_max" not in run_info
+    if PRESETS[name].auto_n_max:
+        assert finest != PRESETS[name].n_max  # sized to the cube, not the preset's 2048
