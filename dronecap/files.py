@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import hashlib
 import os
 import re
@@ -54,8 +55,9 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
 
     An exception (or Ctrl-C) inside the block removes the temporary file, so a reader never sees
-    a half-written output under the final name, and an existing output is kept. Works for files
-    and for directories (an existing folder is replaced only by a folder).
+    a half-written output under the final name, and an existing output is kept. Temporaries of
+    ``path`` left by a killed process (``kill -9``) are removed when the next writer starts.
+    Works for files and for directories (an existing folder is replaced only by a folder).
 
     Raises:
         OutputError: the storage refused (full disk, read-only, a file or folder in the way).
@@ -64,7 +66,7 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
     tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
-        _remove(tmp)
+        _remove_stale_temporaries(final)
         yield tmp
         if final.is_dir() and not final.is_symlink():
             if not tmp.is_dir():
@@ -83,6 +85,25 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
     finally:
         with contextlib.suppress(OSError):
             _remove(tmp)
+
+
+def _remove_stale_temporaries(final: Path) -> None:
+    """Remove ``final``'s temporaries left by this process or by dead ones (``kill -9``);
+    those of a live process (a concurrent writer) are left alone."""
+    for p in final.parent.glob(f".{glob.escape(final.name)}.tmp-*"):
+        pid = p.name.rsplit("-", 1)[-1]
+        if pid.isdigit() and (int(pid) == os.getpid() or not _alive(int(pid))):
+            _remove(p)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def require_free_space(path: str | Path, nbytes: int) -> None:

@@ -334,8 +334,8 @@ def serve(grid: Grid, run_dir: Path) -> None:
         if agg is None or not st["bytes_up"]:
             reasons = "; ".join(f"{k}: {why}" for k, why in sorted(failed.items()))
             raise FederationFailed(
-                f"round {r}: every drone failed, nothing to average ({reasons}); the "
-                f"{len(history) - 1} rounds before it are kept, a rerun resumes there",
+                f"round {r}: every drone failed, nothing to average ({reasons}); rounds up to "
+                f"{history[-1]['round']} are kept, a rerun resumes there",
                 run_dir,
             )
         entry = {

@@ -216,3 +216,27 @@ def test_deployment_superlink_and_supernodes_on_loopback(lego_shards, tmp_path):
     assert [r["round"] for r in rounds] == [0, 1, 2]
     assert rounds[-1]["participants"] == 2
     assert (run / "checkpoint.pt").exists()
+
+
+@pytest.mark.slow
+def test_a_round_where_every_drone_fails_is_an_error(tmp_path):
+    """`--fail-client all`: round 2 has nothing to average. The command exits 1 with one line
+    naming the round, round 2 is not recorded (no global model, no checkpoint), round 1 is."""
+    from dronecap.datasets.format import write_dataset
+    from dronecap.datasets.shard import shard_dataset
+    from tests.reliability.conftest import small_dataset
+
+    write_dataset(tmp_path / "dataset.h5", small_dataset("dataset", 3))
+    shard_dataset(tmp_path / "dataset.h5", tmp_path / "shards", 2, "iid")
+    args = ["shards", "--clients", "2", "--preset", "test", "--pretrain", "4"]
+    args += ["--local-steps", "2", "--rounds", "2", "--eval-views", "1", "--out", "run"]
+    res = _federate([*args, "--fail-client", "all", "--fail-round", "2"], cwd=tmp_path)
+    out, _ = res.communicate(timeout=800)
+    assert res.returncode == 1, out
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("dronecap federate: error: ") and "round 2: every drone failed" in last
+    assert "injected fault: client 1 fails in round 2" in last
+    doc = json.loads((tmp_path / "run" / "rounds.json").read_text())
+    assert [r["round"] for r in doc["rounds"]] == [0, 1]
+    assert not (tmp_path / "run" / "global" / "round_002.pt").exists()
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()
