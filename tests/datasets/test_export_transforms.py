@@ -258,3 +258,44 @@ def test_cli_default_paths(tmp_path: Path, capsys: pytest.CaptureFixture) -> Non
     assert main(["export-transforms", "--workdir", str(tmp_path)]) == 0
     assert "5 frames" in capsys.readouterr().out
     assert (tmp_path / "transforms" / "images" / "00004.png").exists()
+
+
+@pytest.mark.slow
+def test_captured_flight_export_loads_in_both_tools(tmp_path: Path) -> None:
+    """simulate -> ingest -> sfm -> split -> export: the anchors' rules on a real SfM output,
+    with the SfM model's coloured points and observations in the exported frame."""
+    import pycolmap
+
+    w = ["--workdir", str(tmp_path)]
+    steps = [
+        ["simulate", "--frames", "120", "--seed", "2"],
+        ["ingest", str(tmp_path / "flight.mp4")],
+        ["sfm", "--gt", str(tmp_path / "flight.json")],
+        ["split"],
+        ["export-transforms"],
+    ]
+    for cmd in steps:
+        assert main(["-q", *cmd, *w]) == 0, cmd
+    out = tmp_path / "transforms"
+    meta = json.loads((out / "transforms.json").read_text())
+    assert nerfstudio_rules(out) == [] and "ply_file_path" in meta
+    test = set(meta["test_filenames"])
+    assert meta["val_filenames"] == meta["test_filenames"] and test
+    assert ngp_rules(out / "transforms_train.json", must_not_contain=test) == []
+    ds = open_dataset(tmp_path / "dataset.h5")
+    np.testing.assert_allclose(meta["applied_transform"], ds.normalization[:3])
+    rec = pycolmap.Reconstruction(str(out / "colmap/sparse/0"))
+    assert rec.num_reg_images() == ds.n and rec.num_points3D() > 100
+    # every observation reprojects through transforms.json's camera and poses (SfM residuals)
+    k = ds.intrinsics
+    c2w = {
+        f["file_path"]: opengl_to_opencv(np.array(f["transform_matrix"])) for f in meta["frames"]
+    }
+    errs = []
+    for image in rec.images.values():
+        pose = c2w[f"images/{image.name}"]
+        obs = [p for p in image.points2D if p.has_point3D()]
+        xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs])
+        uv = k.project((xyz - pose[:3, 3]) @ pose[:3, :3])
+        errs += list(np.hypot(*(uv - np.array([p.xy for p in obs])).T))
+    assert np.median(errs) < 1.0
