@@ -71,10 +71,10 @@ class SelectionParams:
     """Thresholds of the selection rules (see the module docstring). DN = 8-bit levels."""
 
     min_motion: float = field(
-        default=5.0, metadata={"help": "most median track motion (pixels) between kept frames"}
+        default=8.0, metadata={"help": "most median track motion (pixels) between kept frames"}
     )
     min_parallax: float = field(
-        default=1.3,
+        default=0.7,
         metadata={"help": "most track parallax (pixels beyond a homography) between kept frames"},
     )
     min_survival: float = field(

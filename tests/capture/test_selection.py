@@ -66,7 +66,8 @@ def test_parallax_decides_when_the_image_barely_moves():
     # An object orbited on a backdrop: its image moves 0.5 px per frame (motion alone would
     # keep one frame in nine) but the parallax grows 0.5 px per frame: with min_parallax 1.3
     # the frame at 1.5 px is past it, so every third frame (1.0 px) is kept.
-    sel = select_frames(tables(np.full(60, 0.5), np.full(60, 0.5)), SelectionParams())
+    p = SelectionParams(min_motion=5.0, min_parallax=1.3)
+    sel = select_frames(tables(np.full(60, 0.5), np.full(60, 0.5)), p)
     assert np.all(np.diff(kept(sel)) == 2)
 
 
