@@ -115,8 +115,8 @@ class Camera:
             model = FISHEYE
         elif not any(d):
             model, d = "PINHOLE", []
-        elif len(d) == 4:
-            model = "OPENCV"
+        elif len(d) == 4 or (len(d) in (5, 8) and not any(d[4:])):
+            model, d = "OPENCV", d[:4]  # k3..k6 zero: the simpler model, same maths
         elif len(d) in (5, 8):
             model, d = "FULL_OPENCV", (d + [0.0] * 3)[:8]
         else:

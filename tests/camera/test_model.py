@@ -43,6 +43,9 @@ def test_colmap_models_map_to_opencv_vectors():
     assert sr.opencv_coeffs().tolist() == [-0.05, 0, 0, 0]
     cam = Camera.from_opencv(LENS.matrix(), [-0.1, 0.02, 0.001, -0.0005, 0.003], 160, 160)
     assert cam.model == "FULL_OPENCV" and len(cam.distortion) == 8
+    # OpenCV's usual 5-vector with k3 = 0 is the 4-parameter OPENCV model
+    cam = Camera.from_opencv(LENS.matrix(), [-0.1, 0.02, 0.001, -0.0005, 0.0], 160, 160)
+    assert cam.model == "OPENCV" and cam.distortion == (-0.1, 0.02, 0.001, -0.0005)
     assert Camera.from_opencv(LENS.matrix(), np.zeros(5), 160, 160).model == "PINHOLE"
     with pytest.raises(ValueError):
         Camera.from_opencv(LENS.matrix(), np.zeros(12) + 0.1, 160, 160)
