@@ -77,7 +77,10 @@ def snapshot(work: Path) -> None:
                 (tmp / sub).rename(pkg / sub)
         (pkg / "pipelines.yaml").unlink(missing_ok=True)
         (tmp / "pipelines.yaml").rename(pkg / "pipelines.yaml")
-        tmp.rename(root)
+        try:
+            tmp.rename(root)
+        except OSError:  # another run of this script unpacked the same commit meanwhile
+            subprocess.run(["rm", "-rf", str(tmp)], check=True)
     env = dict(os.environ, DRONECAP_SNAPSHOT=commit, PYTHONPATH=str(root / "pkg"),
                DRONECAP_RESULTS=str(RESULTS))  # fmt: skip
     print(f"running on a snapshot of commit {commit}: {root}", flush=True)
@@ -112,7 +115,7 @@ def reference_frames(work: Path, frames: int) -> np.ndarray:
     """Noise-free renders of every source frame: uint8 [N, 160, 160] (rendered once)."""
     from dronecap.simulator.simulate import render_flight
 
-    path = work / "reference.npy"
+    path = work / f"reference-{frames}.npy"
     if not path.exists():
         import dataclasses as dc
 
@@ -121,7 +124,9 @@ def reference_frames(work: Path, frames: int) -> np.ndarray:
         clean = capture_preset("clean")
         sensor = dc.replace(clean.sensor, read_noise=0.0, shot_noise=0.0, exposure_drift=0.0)
         it, _ = render_flight("corridor", frames, 0, dc.replace(clean, sensor=sensor))
-        np.save(path, np.stack(list(it)))
+        tmp = path.with_name(f".reference-{os.getpid()}.npy")
+        np.save(tmp, np.stack(list(it)))
+        os.replace(tmp, path)
     return np.load(path)
 
 
@@ -160,7 +165,8 @@ def run_case(name: str, work: Path, frames: int, steps: int) -> dict:
         return json.loads(done.read_text())
     d.mkdir(parents=True, exist_ok=True)
     log = d / "log.txt"
-    rec: dict = {"case": name, "kind": kind, "flags": " ".join(flags)}
+    rec: dict = {"case": name, "kind": kind, "flags": " ".join(flags),
+                 "commit": os.environ.get("DRONECAP_SNAPSHOT", "work tree")}  # fmt: skip
     t0 = time.perf_counter()
     try:
         sim = ["simulate", "--frames", str(frames), "--seed", "0", *flags]
@@ -222,14 +228,15 @@ def table(recs: list[dict], args: argparse.Namespace, load: str) -> str:
         f"Command: `nice .venv/bin/python benchmarks/robustness.py --frames {args.frames} "
         f"--steps {args.steps}` (corridor, seed 0, default `ingest`, `sfm --gt --threads 1`, "
         f"`split`, `train --threads 1 --steps {args.steps}`). Code: commit "
-        f"{os.environ.get('DRONECAP_SNAPSHOT', 'work tree')}. Load: {load}.",
+        f"{', '.join(sorted({r.get('commit', '?') for r in recs}))} (per case in the last "
+        f"column). Load: {load}.",
         "",
         "Δ PSNR = test PSNR minus the clean flight's (own test views). PSNR vs ref: the same run "
         "evaluated against noise-free, drift-free renders of the test poses (photometric cases).",
         "",
         "| case | flags | delivered / kept | registered | ATE | rot. median | focal err. "
-        "| test PSNR / SSIM | Δ PSNR | PSNR / SSIM vs ref | note |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| test PSNR / SSIM | Δ PSNR | PSNR / SSIM vs ref | note | commit |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in recs:
         delta = r["psnr"] - clean["psnr"] if clean and "psnr" in r else None
@@ -243,7 +250,7 @@ def table(recs: list[dict], args: argparse.Namespace, load: str) -> str:
             f"| {fmt(r.get('registered_pct'), '.1f')} % | {fmt(r.get('ate_pct'), '.2f')} % "
             f"| {fmt(r.get('rot_median_deg'), '.2f')}° | {fmt(r.get('focal_err_pct'), '+.2f')} % "
             f"| {fmt(r.get('psnr'), '.2f')} / {fmt(r.get('ssim'), '.3f')} "
-            f"| {fmt(delta, '+.2f')} | {ref} | {note} |"
+            f"| {fmt(delta, '+.2f')} | {ref} | {note} | {r.get('commit', '?')} |"
         )
     return "\n".join(lines) + "\n"
 
