@@ -64,17 +64,25 @@ def cube_dataset(
     model: str = "PINHOLE",
     distortion: tuple[float, ...] = (),
     radius: float = 3.0,
+    fov: float = 0.8,
+    aim_offset: float = 0.0,
 ) -> Dataset:
     """``n`` views on a circle (``radius``, slightly above) of the coloured cube through a
-    camera of the given lens ``model``/``distortion``; every ``test_every``-th view is a test
-    view. AABB [-1, 1]^3, white background."""
-    f = size / (2 * np.tan(0.5 * 0.8))
+    camera of field of view ``fov`` (radians) and the given lens ``model``/``distortion``;
+    every ``test_every``-th view is a test view. AABB [-1, 1]^3, white background.
+
+    ``aim_offset`` > 0 aims view ``i`` that far beside the cube, in a direction that turns by
+    2.4 rad from view to view, so the cube crosses every part of the frame (where a lens
+    distorts most) instead of sitting at the centre."""
+    f = size / (2 * np.tan(0.5 * fov))
     k = Intrinsics(f, f, size / 2, size / 2, size, size, model, tuple(distortion))
     poses, imgs, alphas = [], [], []
     for i in range(n):
         th = 2 * np.pi * i / n
         eye = np.array([radius * np.cos(th), radius * np.sin(th), 0.4 * radius])
-        c2w = look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+        side = np.array([-np.sin(th), np.cos(th), 0.0])  # horizontal, across the view
+        target = aim_offset * (np.cos(2.4 * i) * side + np.sin(2.4 * i) * np.array([0, 0, 1.0]))
+        c2w = look_at(eye, target, np.array([0.0, 0.0, 1.0]))
         rgb, a = render_cube(c2w, k)
         if channels == 1:
             rgb = rgb @ np.array([0.299, 0.587, 0.114])[:, None]
