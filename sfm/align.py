@@ -110,6 +110,7 @@ class PoseAccuracy:
     rot_median_deg: float  # median camera rotation error after alignment, degrees
     rot_max_deg: float
     scale: float  # similarity scale recovered -> ground truth
+    gravity_deg: float  # angle the alignment turns +z by (meaningful when both frames are z-up)
     warning: str = ""  # set when the position errors rival the trajectory's sideways spread
 
     def to_dict(self) -> dict[str, float | int | str]:
@@ -166,6 +167,7 @@ def pose_accuracy(
         rot_median_deg=float(np.median(rot)),
         rot_max_deg=float(rot.max()),
         scale=sim.scale,
+        gravity_deg=float(np.degrees(np.arccos(np.clip(sim.rotation[2, 2], -1.0, 1.0)))),
         warning=warning,
     )
 

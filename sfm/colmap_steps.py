@@ -158,8 +158,12 @@ def match(database: Path, work: Path, opts: SfmOptions, n_frames: int) -> dict[s
     return info
 
 
-def mapper_options(opts: SfmOptions, known_camera: bool, relaxed: bool = False) -> Any:
-    """IncrementalPipelineOptions for small gray frames; ``relaxed`` for the extension pass."""
+def mapper_options(opts: SfmOptions, refine_camera: bool, relaxed: bool = False) -> Any:
+    """IncrementalPipelineOptions for small gray frames; ``relaxed`` for the extension pass.
+
+    ``refine_camera``: bundle adjustment and registration refine the focal length(s) and the
+    distortion (``--camera refine|estimate``); the principal point is never refined.
+    """
     import pycolmap
 
     m = pycolmap.IncrementalPipelineOptions()
@@ -169,14 +173,14 @@ def mapper_options(opts: SfmOptions, known_camera: bool, relaxed: bool = False) 
     m.num_threads = opts.num_threads
     m.random_seed = opts.seed
     m.extract_colors = False
-    m.ba_refine_focal_length = not known_camera
-    m.ba_refine_extra_params = not known_camera
+    m.ba_refine_focal_length = refine_camera
+    m.ba_refine_extra_params = refine_camera
     m.ba_refine_principal_point = False
     m.mapper.init_min_num_inliers = opts.init_min_num_inliers
-    m.mapper.init_min_tri_angle = 8.0
+    m.mapper.init_min_tri_angle = opts.init_min_tri_angle
     m.mapper.abs_pose_min_num_inliers = opts.abs_pose_min_num_inliers
-    m.mapper.abs_pose_refine_focal_length = not known_camera
-    m.mapper.abs_pose_refine_extra_params = not known_camera
+    m.mapper.abs_pose_refine_focal_length = refine_camera
+    m.mapper.abs_pose_refine_extra_params = refine_camera
     m.mapper.random_seed = opts.seed
     m.mapper.init_max_error = opts.max_reproj_error
     m.mapper.filter_max_reproj_error = opts.max_reproj_error
@@ -199,7 +203,7 @@ def incremental_map(
     image_dir: Path,
     out_dir: Path,
     opts: SfmOptions,
-    known_camera: bool,
+    refine_camera: bool,
     on_register: Callable[[int], None],
     input_path: Path | None = None,
     init_pair: tuple[int, int] | None = None,
@@ -210,7 +214,8 @@ def incremental_map(
         on_register: called with the number of frames just registered (2 for the initial pair,
             then 1 per frame) so that a progress bar can follow.
         input_path: resume from this model (extension pass, relaxed registration thresholds).
-        init_pair: database image ids of the initial pair (default: COLMAP chooses).
+        init_pair: database image ids of the initial pair (default: COLMAP chooses). One model
+            only: COLMAP would start every further model from the same pair.
 
     Returns:
         model folder -> {"frames": registered frames, "reproj": mean reprojection error, px}.
@@ -218,9 +223,10 @@ def incremental_map(
     import pycolmap
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    options = mapper_options(opts, known_camera, relaxed=input_path is not None)
+    options = mapper_options(opts, refine_camera, relaxed=input_path is not None)
     if init_pair is not None:
         options.init_image_id1, options.init_image_id2 = init_pair
+        options.multiple_models = False
     models = pycolmap.incremental_mapping(
         database,
         image_dir,
@@ -241,32 +247,67 @@ def incremental_map(
     return found
 
 
-def epipolar_init_pair(database: Path, min_gap: int = 3) -> tuple[int, int] | None:
-    """The initial pair: most verified inliers among pairs whose two-view geometry is a general
-    epipolar one (CALIBRATED or UNCALIBRATED, not PLANAR / PANORAMIC), at least ``min_gap``
-    frames apart in flight order; database image ids, or None when there is no such pair.
+GENERAL_CONFIGS = ("CALIBRATED", "UNCALIBRATED")  # two-view geometries with parallax
+INIT_CANDIDATES = 30  # pairs (most inliers first) whose triangulation angle is measured
 
-    COLMAP's own choice favours the pair with the most matches anywhere. On small frames looking
-    at a wall, most pairs are labelled planar (a homography explains their matches to a few
-    pixels), and a start from one of them takes its relative pose from the homography, whose
-    decomposition is ambiguous: on the simulated corridor COLMAP started there and the relative
-    translations near the start came out 80-140 degrees off (ATE 10-17 %, see docs/sfm.md).
-    A pair where the essential (or fundamental) matrix wins has parallax that fixes the motion.
+
+def initial_pair(
+    database: Path, opts: SfmOptions, min_gap: int = 3
+) -> tuple[tuple[int, int] | None, dict[str, Any]]:
+    """Our initial pair: database image ids, or None to leave the choice to COLMAP; plus a
+    description for the report (names, inliers, median triangulation angle, candidates).
+
+    Among verified pairs whose two-view geometry is a general epipolar one (CALIBRATED or
+    UNCALIBRATED, not PLANAR / PANORAMIC) and that lie ``min_gap`` to ``opts.init_max_gap``
+    frames apart in flight order, the :data:`INIT_CANDIDATES` with most inliers get their median
+    triangulation angle measured (COLMAP's relative pose from the database's geometry); the pair
+    with most inliers among those with at least ``opts.init_min_tri_angle`` wins.
+
+    Why: COLMAP's own choice favours the pair with the most matches anywhere. On small frames
+    looking at a wall most pairs are labelled planar, and a start from one of them takes its
+    relative pose from an ambiguous homography decomposition (simulated corridor: ATE 10-17 %,
+    see docs/sfm.md). A near-duplicate view has no triangulation angle, and a loop-closure twin
+    (the same view on two passes of an orbit) is far apart in the flight: from either the model
+    never grows past a few frames.
     """
     import pycolmap
 
-    general = (
-        pycolmap.TwoViewGeometryConfiguration.CALIBRATED,
-        pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED,
-    )
+    general = {int(getattr(pycolmap.TwoViewGeometryConfiguration, c)) for c in GENERAL_CONFIGS}
     with pycolmap.Database.open(database) as db:
-        order = {im.image_id: im.name for im in db.read_all_images()}
+        images = {im.image_id: im for im in db.read_all_images()}
         pair_ids, geoms = db.read_two_view_geometries()
-    rank = {i: r for r, i in enumerate(sorted(order, key=lambda i: order[i]))}
-    best, best_inliers = None, 0
-    for pair_id, g in zip(pair_ids, geoms, strict=True):
-        a, b = pycolmap.pair_id_to_image_pair(pair_id)
-        n = g.inlier_matches.shape[0]
-        if g.config in general and abs(rank[a] - rank[b]) >= min_gap and n > best_inliers:
-            best, best_inliers = (a, b), n
-    return best
+        rank = {i: r for r, i in enumerate(sorted(images, key=lambda i: images[i].name))}
+        cands = []
+        for pair_id, g in zip(pair_ids, geoms, strict=True):
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            gap = abs(rank[a] - rank[b])
+            if int(g.config) in general and min_gap <= gap <= opts.init_max_gap:
+                cands.append((g.inlier_matches.shape[0], a, b, g))
+        cands.sort(key=lambda c: -c[0])
+        measured = []
+        for n, a, b, g in cands[:INIT_CANDIDATES]:
+            cam_a = db.read_camera(images[a].camera_id)
+            cam_b = db.read_camera(images[b].camera_id)
+            kp_a = np.asarray(db.read_keypoints(a))[:, :2].astype(np.float64)
+            kp_b = np.asarray(db.read_keypoints(b))[:, :2].astype(np.float64)
+            ok = pycolmap.estimate_two_view_geometry_pose(cam_a, kp_a, cam_b, kp_b, g)
+            angle = float(np.degrees(g.tri_angle)) if ok and g.tri_angle >= 0 else 0.0
+            measured.append((n, angle, a, b))
+    pick = choose_initial_pair(measured, opts.init_min_tri_angle)
+    info: dict[str, Any] = {"candidates": len(cands), "measured": len(measured)}
+    if pick is None:
+        info["chosen"] = None
+        return None, info
+    n, angle, a, b = pick
+    info["chosen"] = {"frames": [images[a].name, images[b].name], "inliers": n,
+                      "tri_angle_deg": round(angle, 2)}  # fmt: skip
+    return (a, b), info
+
+
+def choose_initial_pair(
+    measured: list[tuple[int, float, int, int]], min_angle: float
+) -> tuple[int, float, int, int] | None:
+    """The (inliers, angle_deg, a, b) entry with most inliers among those whose median
+    triangulation angle is at least ``min_angle`` degrees, or None."""
+    ok = [m for m in measured if m[1] >= min_angle]
+    return max(ok, key=lambda m: (m[0], m[1])) if ok else None

@@ -111,20 +111,28 @@ def robust_box(points: np.ndarray, percentile: float) -> np.ndarray:
 
 
 def normalize_scene(
-    c2w: np.ndarray, points: np.ndarray, settings: NormalizeSettings | None = None
+    c2w: np.ndarray,
+    points: np.ndarray,
+    settings: NormalizeSettings | None = None,
+    up: np.ndarray | None = None,
 ) -> Normalization:
     """Similarity and AABB for a flight (see the module docstring).
 
     Args:
         c2w: float64 [N, 4, 4] camera-to-world, OpenCV axes, SfM units.
         points: float64 [P, 3] sparse points, SfM units (may be empty).
+        up: float64 [3] the known up direction in the input frame (e.g. +z of a world aligned
+            to telemetry priors, opposite to gravity); None: the mean camera up vector.
 
     Returns:
         Normalization whose AABB contains every camera centre and the robust point box, with
         the longest half side of the unpadded box equal to 1.
     """
     st = settings or NormalizeSettings()
-    rot = up_rotation(c2w)
+    if up is None:
+        rot = up_rotation(c2w)
+    else:
+        rot = rotation_between(np.asarray(up, float) / np.linalg.norm(up), np.array([0, 0, 1.0]))
     inl = statistical_inliers(points, st.nb_neighbors, st.std_ratio)
     kept = points[inl] @ rot.T
     centres = c2w[:, :3, 3] @ rot.T

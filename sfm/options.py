@@ -9,16 +9,20 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 MATCHERS = ("auto", "sequential", "exhaustive")
+CAMERA_MODES = ("auto", "fixed", "refine", "estimate")
 
 
 @dataclass
 class SfmOptions:
     """What COLMAP is asked to do, from features to mapping."""
 
+    # --- camera (see sfm/camera_plan.py) ---
+    camera: str = "auto"  # fixed | refine | estimate; auto: fixed when the camera is known
     # --- features (SIFT on CPU) ---
     max_features: int = 2048  # SIFT keypoints kept per image (160x160 frames yield ~100-400)
     first_octave: int = -1  # -1 upsamples 2x before the first octave: more features on tiny images
     peak_threshold: float = 0.004  # SIFT contrast threshold (COLMAP default 0.0067)
+    clahe: bool = False  # contrast-normalise frames (capture.contrast) before SIFT
     # --- matching ---
     matcher: str = "auto"  # "sequential" (video order), "exhaustive", or "auto"
     exhaustive_below: int = 80  # "auto" matches every pair when there are fewer frames than this
@@ -43,14 +47,25 @@ class SfmOptions:
     abs_pose_min_num_inliers: int = 15  # 2D-3D inliers needed to register a frame
     max_models: int = 10  # COLMAP keeps starting new models up to this many
     init_trials: int = 1  # 2: also map from COLMAP's own initial pair, keep the better model
+    init_max_gap: int = 10  # our initial pair: at most this many frames apart (no loop twins)
+    init_min_tri_angle: float = 8.0  # deg: median triangulation angle of an initial pair
     extend: bool = True  # resume mapping from the largest model to absorb the others
     seed: int = 0  # random seed of the mapper (deterministic runs)
     num_threads: int = -1  # -1: all cores
-    # --- acceptance ---
+    # --- retries and acceptance ---
+    retry_below: float = 0.9  # registered fraction under which the next remedy is tried
+    retry_budget: float = 600.0  # s: no new remedy starts after this much time on retries
     min_registration: float = 0.5  # fail (exit 1) when fewer frames than this fraction register
+    prior_fallback: bool = False  # frames that fail to register get their telemetry prior pose
 
     def validate(self) -> None:
         """Raise ValueError naming the first impossible setting."""
+        if self.camera not in CAMERA_MODES:
+            raise ValueError(f"camera must be one of {CAMERA_MODES}, got {self.camera!r}")
+        if not 0.0 <= self.retry_below <= 1.0 or self.retry_budget < 0:
+            raise ValueError("retry_below must be in [0, 1] and retry_budget >= 0")
+        if self.init_max_gap < 1 or not 0 < self.init_min_tri_angle < 90:
+            raise ValueError("init_max_gap must be >= 1 and init_min_tri_angle in (0, 90) deg")
         if self.matcher not in MATCHERS:
             raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
         if self.max_features < 16:

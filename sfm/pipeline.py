@@ -21,17 +21,26 @@ from typing import Any
 
 import numpy as np
 
+from dronecap.camera import Camera
 from dronecap.datasets.format import Dataset, open_dataset, provenance, write_dataset
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, sha256_file
-from dronecap.sfm.align import accuracy_against, load_ground_truth
+from dronecap.sfm.align import DegenerateAlignment, accuracy_against, load_ground_truth
+from dronecap.sfm.camera_plan import CameraPlan, camera_from_colmap, plan_camera
 from dronecap.sfm.colmap_steps import MIN_KEYPOINTS
 from dronecap.sfm.normalize import apply_to_points, apply_to_poses, near_far, normalize_scene
 from dronecap.sfm.options import SfmOptions
-from dronecap.sfm.reconstruct import ColmapResult, intrinsics_from_colmap, reconstruct
+from dronecap.sfm.priors import fit_to_priors, read_priors
+from dronecap.sfm.reconstruct import ColmapResult
 from dronecap.sfm.report import ADVICE, drop_reason, dropped_runs, format_report
+from dronecap.sfm.retries import reconstruct_with_retries
 
 MIN_FRAMES = 3
+PER_FRAME_EXTRAS = (
+    "prior_c2w",
+    "prior_valid",
+    "frame_id",
+)  # frames.h5 extras with one row per frame
 
 
 def model_arrays(rec: Any, names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
@@ -94,6 +103,7 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         "models": summary.get("models", {}),
         "chosen_model": summary["best"] and str(Path(summary["best"]).relative_to(res.work)),
         "matching": match_info,
+        "init_pair": summary.get("init_pair"),
         "keypoints_per_frame_median": float(np.median(list(keypoints.values())))
         if keypoints
         else 0.0,
@@ -108,10 +118,13 @@ def run_sfm(
     opts: SfmOptions,
     gt_path: Path | None = None,
     progress: bool = True,
+    camera_from: Path | None = None,
 ) -> dict[str, Any]:
     """Recover poses of ``frames_path`` and write ``posed_path`` and ``sfm_dir`` outputs.
 
-    Returns the report dict (also printed when ``progress`` and stored as report.json).
+    ``camera_from``: an earlier posed.h5 of the same drone whose camera is used (see
+    :mod:`dronecap.sfm.camera_plan`). Returns the report dict (also printed when ``progress``
+    and stored as report.json).
 
     Raises:
         InputError: unreadable input, too few frames, nothing reconstructed, or a registration
@@ -126,12 +139,18 @@ def run_sfm(
     gt = load_ground_truth(gt_path) if gt_path is not None else None
     if ds.n < MIN_FRAMES:
         raise InputError(f"only {ds.n} frame(s); SfM needs at least {MIN_FRAMES}", frames_path)
+    plan = plan_camera(ds, opts.camera, camera_from)
+    known = None
+    if plan.mode == "estimate" and camera_from is None and ds.intrinsics is not None:
+        if ds.attrs.get("camera_source", "calibration") != "none":
+            known = plan_camera(ds, "fixed")
     sfm_dir.mkdir(parents=True, exist_ok=True)
-    known = ds.intrinsics if ds.intrinsics is not None and not ds.intrinsics.distortion else None
-    res = reconstruct(ds.images, sfm_dir / "work", opts, known, progress=progress)
+    best, attempts = reconstruct_with_retries(ds.images, sfm_dir, opts, plan, known, progress)
+    res = best.result
     rec = res.reconstruction
     if rec is None or rec.num_reg_images() < MIN_FRAMES:
         report = build_report(res, ds, np.zeros(0, np.int64))
+        report["attempts"] = [a.to_dict() for a in attempts]
         report["status"] = "failed"
         report["message"] = (
             f"nothing usable came out: {res.summary.get('stopped') or 'no model with 3+ frames'}; "
@@ -142,37 +161,50 @@ def run_sfm(
 
     idx, c2w, points, seen = model_arrays(rec, res.names)
     report = build_report(res, ds, idx)
+    report["attempts"] = [a.to_dict() for a in attempts]
+    report["remedy"] = best.remedies[-1] if best.remedies else None
     t = time.perf_counter()
-    norm = normalize_scene(c2w, points)
-    poses = apply_to_poses(norm.matrix, c2w)
-    pts = apply_to_points(norm.matrix, points)
+    priors = read_priors(ds)
+    metric, up = np.eye(4), None
+    if priors is not None:
+        report["priors"], metric = _align_to_priors(c2w, idx, priors)
+        if "error" not in report["priors"]:
+            up = np.array([0.0, 0.0, 1.0])
+    c2w_w, points_w = apply_to_poses(metric, c2w), apply_to_points(metric, points)
+    norm = normalize_scene(c2w_w, points_w, up=up)
+    poses = apply_to_poses(norm.matrix, c2w_w)
+    pts = apply_to_points(norm.matrix, points_w)
     nf = near_far(poses, norm.aabb, [pts[s] for s in seen])
     cam = rec.cameras[rec.images[rec.reg_image_ids()[0]].camera_id]
-    k = intrinsics_from_colmap(cam.model_name, np.asarray(cam.params), cam.width, cam.height)
+    k = camera_from_colmap(cam.model_name, np.asarray(cam.params), cam.width, cam.height)
+    if plan.mode == "fixed":  # the known camera exactly as given (no text round trip)
+        k = plan.camera
     report["times"]["normalize"] = round(time.perf_counter() - t, 3)
-    report["camera"] = {
-        "model": k.model,
-        "fx": k.fx,
-        "fy": k.fy,
-        "cx": k.cx,
-        "cy": k.cy,
-        "distortion": list(k.distortion),
-        "fixed": known is not None,
-    }
+    report["camera"] = _camera_report(k, plan)
     report["quality"] = {
         "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
         "mean_track_length": float(rec.compute_mean_track_length()),
         "points": int(len(points)),
         "points_kept": int(norm.inliers.sum()),
     }
+    scene_from_model = norm.matrix @ metric
     report["scene"] = {
-        "normalization": norm.matrix.tolist(),
+        "normalization": scene_from_model.tolist(),
         "aabb": norm.aabb.tolist(),
         "near_far_median": np.median(nf, 0).tolist(),
     }
+    fallback = np.zeros(0, np.int64)
+    if opts.prior_fallback and priors is not None and "error" not in report["priors"]:
+        fallback = np.setdiff1d(np.flatnonzero(priors[1]), idx)
+        poses = np.concatenate([poses, apply_to_poses(norm.matrix, priors[0][fallback])])
+        nf = np.concatenate([nf, near_far(poses[len(idx) :], norm.aabb, [])])
+        report["priors"]["fallback_frames"] = fallback.tolist()
+    order = np.argsort(np.concatenate([idx, fallback]), kind="stable")
+    all_idx = np.concatenate([idx, fallback])[order]
+    poses, nf = poses[order], nf[order]
     src = ds.source_index if ds.source_index is not None else np.arange(ds.n)
     if gt is not None:
-        report["accuracy"] = accuracy_against(poses, src[idx], gt, src)
+        report["accuracy"] = accuracy_against(poses[np.isin(all_idx, idx)], src[idx], gt, src)
 
     t = time.perf_counter()
     with atomic_output(sfm_dir / "model") as tmp:
@@ -190,27 +222,82 @@ def run_sfm(
         _finish(report, sfm_dir, t0, progress)
         raise InputError(report["message"], frames_path)
 
-    posed = ds.subset(idx)
+    posed = ds.subset(all_idx)
     posed.kind = "posed"
     posed.poses = poses
     posed.intrinsics = k
     posed.aabb = norm.aabb
     posed.near_far = nf
-    posed.normalization = norm.matrix
+    posed.normalization = scene_from_model
+    for name in PER_FRAME_EXTRAS:
+        if name in ds.extra and len(ds.extra[name]) == ds.n:
+            posed.extra[name] = np.asarray(ds.extra[name])[all_idx]
+    posed.extra["pose_source"] = np.isin(all_idx, fallback).astype(np.int8)
     posed.provenance = provenance(
         "sfm",
-        opts.to_dict(),
+        {**opts.to_dict(), "camera_from": str(camera_from) if camera_from else None},
         {"frames.h5": sha256_file(frames_path), **({"gt": sha256_file(gt_path)} if gt else {})},
     )
     posed.attrs = {
         **ds.attrs,
         "sfm_registered": len(idx),
         "sfm_frames_total": ds.n,
+        "sfm_camera": {"mode": plan.mode, "source": plan.source},
         "pixel_centres": "intrinsics in COLMAP's convention: pixel (u, v) centred at (u+.5, v+.5)",
     }
+    if up is not None:
+        posed.attrs["world_from_scene"] = np.linalg.inv(norm.matrix).tolist()
+        posed.attrs["metres_per_scene_unit"] = float(
+            1.0 / np.cbrt(np.linalg.det(norm.matrix[:3, :3]))
+        )
     write_dataset(posed_path, posed)
     _finish(report, sfm_dir, t0, progress)
     return report
+
+
+def _align_to_priors(
+    c2w: np.ndarray, idx: np.ndarray, priors: tuple[np.ndarray, np.ndarray]
+) -> tuple[dict[str, Any], np.ndarray]:
+    """Fit the registered poses [R, 4, 4] (frames ``idx``) to their telemetry priors.
+
+    Returns the report's "priors" record and the 4x4 similarity (identity when the fit fails).
+    """
+    prior_c2w, valid = priors
+    have = valid[idx]
+    info: dict[str, Any] = {
+        "frames_with_prior": int(valid.sum()),
+        "registered_with_prior": int(have.sum()),
+    }
+    try:
+        fit = fit_to_priors(c2w[have], prior_c2w[idx[have]])
+    except DegenerateAlignment as err:
+        info["error"] = f"not aligned to the priors: {err}"
+        return info, np.eye(4)
+    info.update(
+        method=fit.method,
+        used=int(fit.used.sum()),
+        scale_m_per_unit=fit.sim.scale,
+        **fit.agreement(c2w[have], prior_c2w[idx[have]]),
+    )
+    return info, fit.sim.matrix()
+
+
+def _camera_report(k: Camera, plan: CameraPlan) -> dict[str, Any]:
+    """The report's camera record: the camera used, how it was handled, where it came from."""
+    out: dict[str, Any] = {
+        "model": k.model,
+        "fx": k.fx,
+        "fy": k.fy,
+        "cx": k.cx,
+        "cy": k.cy,
+        "distortion": list(k.distortion),
+        "mode": plan.mode,
+        "source": plan.source,
+        "fixed": plan.mode == "fixed",
+    }
+    if plan.camera is not None and plan.mode != "fixed":
+        out["start_fx"] = plan.camera.fx
+    return out
 
 
 def _write_ply(path: Path, points: np.ndarray) -> None:

@@ -19,18 +19,18 @@ from typing import Any
 
 import numpy as np
 
-from dronecap.datasets.format import Intrinsics
+from dronecap.sfm.camera_plan import CameraPlan
 from dronecap.sfm.colmap_steps import (
     MIN_KEYPOINTS,
-    epipolar_init_pair,
     extract,
     incremental_map,
+    initial_pair,
     match,
 )
 from dronecap.sfm.isolate import run_isolated
 from dronecap.sfm.options import SfmOptions
 
-ONE_PARAM_FOCAL = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")  # COLMAP models with a single f
+TINY_MODEL = 0.5  # our start registered under this fraction of usable frames: also try COLMAP's
 
 
 def image_names(n: int) -> list[str]:
@@ -39,32 +39,18 @@ def image_names(n: int) -> list[str]:
     return [f"{i:0{width}d}.png" for i in range(n)]
 
 
-def colmap_camera(k: Intrinsics) -> tuple[str, list[float]]:
-    """(COLMAP model name, params) of known intrinsics; pixel conventions agree, no shift."""
-    if k.model in ONE_PARAM_FOCAL:
-        return k.model, [k.fx, k.cx, k.cy, *k.distortion]
-    return k.model, [k.fx, k.fy, k.cx, k.cy, *k.distortion]
-
-
-def intrinsics_from_colmap(model: str, params: np.ndarray, width: int, height: int) -> Intrinsics:
-    """dronecap Intrinsics of a COLMAP camera (same pixel-centre convention, values unchanged)."""
-    p = [float(x) for x in params]
-    if model in ONE_PARAM_FOCAL:
-        fx = fy = p[0]
-        cx, cy, dist = p[1], p[2], tuple(p[3:])
-    else:
-        fx, fy, cx, cy, dist = p[0], p[1], p[2], p[3], tuple(p[4:])
-    return Intrinsics(fx, fy, cx, cy, width, height, model=model, distortion=dist)
-
-
 def colmap_job(
     emit: Callable[[tuple[Any, ...]], None],
     work: str,
     names: list[str],
     options: dict[str, Any],
     camera: tuple[str, list[float]] | None,
+    refine_camera: bool,
 ) -> dict[str, Any]:
     """Child-process body: extract, match, map, extend. Returns a JSON-able summary.
+
+    ``camera``: (COLMAP model, params) to start from, or None (COLMAP guesses SIMPLE_RADIAL);
+    ``refine_camera``: whether mapping refines focal length and distortion.
 
     Emits ("phase", name, registered_so_far) when a phase starts and ("registered", k) when the
     mapper registers k more frames. The summary holds per-image keypoints, matching info,
@@ -98,16 +84,18 @@ def colmap_job(
     def on_register(k: int) -> None:
         emit(("registered", k))
 
-    known = camera is not None
     t = phase("map")
-    pair = epipolar_init_pair(db)
+    pair, out["init_pair"] = initial_pair(db, opts)
     found = {}
-    if pair is not None:  # start from a pair with parallax (see epipolar_init_pair)
-        found = incremental_map(db, images, root / "models", opts, known, on_register, None, pair)
+    if pair is not None:  # start from a pair with parallax (see initial_pair)
+        found = incremental_map(
+            db, images, root / "models", opts, refine_camera, on_register, None, pair
+        )
     times["map"] = time.perf_counter() - t
-    if not found or opts.init_trials > 1:  # COLMAP's own choice: fallback, or a second start
+    ours = max((v["frames"] for v in found.values()), default=0)
+    if ours < TINY_MODEL * len(usable) or opts.init_trials > 1:  # COLMAP's own start as well
         t = phase("map (colmap start)")
-        alt = incremental_map(db, images, root / "models_alt", opts, known, on_register)
+        alt = incremental_map(db, images, root / "models_alt", opts, refine_camera, on_register)
         times["map_colmap_start"] = time.perf_counter() - t
         found.update(alt)
     out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
@@ -124,7 +112,7 @@ def colmap_job(
     if opts.extend and size < len(usable):
         t = phase("extend", size)
         ext = incremental_map(
-            db, images, root / "extended", opts, known, on_register, input_path=Path(best)
+            db, images, root / "extended", opts, refine_camera, on_register, input_path=Path(best)
         )
         times["extend"] = time.perf_counter() - t
         if ext:
@@ -149,10 +137,13 @@ def reconstruct(
     images: np.ndarray,
     work: Path,
     opts: SfmOptions,
-    intrinsics: Intrinsics | None,
+    plan: CameraPlan,
     progress: bool = True,
 ) -> ColmapResult:
     """Run COLMAP on ``images`` (uint8 [N, H, W, C], flight order) inside ``work``.
+
+    The frames are written gray (contrast-normalised first when ``opts.clahe``: the same
+    :func:`dronecap.capture.contrast.normalize_contrast` ingest uses); ``plan`` is the camera.
 
     ``work`` is emptied first. Raises ChildCrash if COLMAP dies; every other failure to
     reconstruct is described in the returned summary's "stopped".
@@ -160,6 +151,7 @@ def reconstruct(
     import cv2
     import pycolmap
 
+    from dronecap.capture.contrast import normalize_contrast
     from dronecap.progress import progress_bar
 
     if work.exists():
@@ -169,24 +161,30 @@ def reconstruct(
     t = time.perf_counter()
     for name, im in zip(names, images, strict=True):
         gray = im[..., 0] if im.shape[-1] == 1 else cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)
+        if opts.clahe:
+            gray = normalize_contrast(gray)
         cv2.imwrite(str(work / "images" / name), gray)
     times = {"write_images": time.perf_counter() - t}
 
     bar = progress_bar(total=len(names), desc="sfm", unit="frame", disable=not progress)
 
+    count = [0]  # frames the bar shows; a phase restarts from the model it grows
+
     def on_event(ev: tuple[Any, ...]) -> None:
         if ev[0] == "phase":
             bar.set_description(f"sfm {ev[1]}")
-            bar.n = ev[2]
-            bar.refresh()
+            bar.update(ev[2] - count[0])
+            count[0] = ev[2]
         elif ev[0] == "registered":
             bar.update(ev[1])
+            count[0] += ev[1]
 
-    camera = None if intrinsics is None else colmap_camera(intrinsics)
+    job = {"work": str(work), "names": names, "options": opts.to_dict()}
+    job.update(camera=plan.colmap(), refine_camera=plan.refine)
     try:
         summary = run_isolated(
             "dronecap.sfm.reconstruct:colmap_job",
-            {"work": str(work), "names": names, "options": opts.to_dict(), "camera": camera},
+            job,
             on_event,
             work / "colmap.log",
         )

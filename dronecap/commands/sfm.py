@@ -20,6 +20,14 @@ _FLAGS = {
     "--seed": ("seed", int, "mapper random seed"),
     "--init-trials": ("init_trials", int, "2: also map from COLMAP's initial pair; keep best"),
     "--threads": ("num_threads", int, "COLMAP threads (-1: all cores)"),
+    "--camera": (
+        "camera",
+        str,
+        "fixed | refine | estimate; auto: fixed when frames.h5 has a calibrated camera",
+    ),
+    "--init-max-gap": ("init_max_gap", int, "initial pair: at most this many frames apart"),
+    "--retry-below": ("retry_below", float, "retry with remedies below this registered fraction"),
+    "--retry-budget": ("retry_budget", float, "seconds after which no new retry starts"),
 }
 
 
@@ -29,6 +37,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", help="output posed.h5 (default: WORKDIR/posed.h5)")
     p.add_argument("--sfm-dir", help="model, PLY and report folder (default: WORKDIR/sfm)")
     p.add_argument("--gt", help="ground-truth poses.json (simulator) to measure accuracy against")
+    p.add_argument(
+        "--camera-from",
+        help="posed.h5 of an earlier reconstruction of the same drone: use its camera",
+    )
+    p.add_argument(
+        "--clahe",
+        dest="clahe",
+        action="store_true",
+        default=None,
+        help="contrast-normalise frames before SIFT (low-contrast, vignetted footage)",
+    )
+    p.add_argument(
+        "--prior-fallback",
+        dest="prior_fallback",
+        action="store_true",
+        default=None,
+        help="frames that fail to register keep their telemetry prior pose in posed.h5",
+    )
     for flag, (name, typ, text) in _FLAGS.items():
         p.add_argument(flag, dest=name, type=typ, default=None, help=text)
     p.add_argument(
@@ -76,5 +102,6 @@ def run(args: argparse.Namespace) -> int:
         opts=opts,
         gt_path=Path(args.gt) if args.gt else None,
         progress=not args.quiet,
+        camera_from=Path(args.camera_from) if args.camera_from else None,
     )
     return 0 if report["status"] == "ok" else 1

@@ -11,7 +11,7 @@ from dronecap.sfm.options import SfmOptions
 @pytest.mark.parametrize("relaxed", [False, True])
 def test_pixel_thresholds_reach_the_mapper(relaxed):
     opts = SfmOptions(max_reproj_error=1.25, abs_pose_max_error=2.5, tri_max_angle_error=0.75)
-    m = mapper_options(opts, known_camera=True, relaxed=relaxed)
+    m = mapper_options(opts, refine_camera=False, relaxed=relaxed)
     assert m.mapper.filter_max_reproj_error == pytest.approx(1.25)
     assert m.mapper.init_max_error == pytest.approx(1.25)
     assert m.triangulation.merge_max_reproj_error == pytest.approx(1.25)
@@ -26,7 +26,7 @@ def test_defaults_are_tighter_than_colmaps():
     import pycolmap
 
     colmap = pycolmap.IncrementalPipelineOptions()
-    ours = mapper_options(SfmOptions(), known_camera=False)
+    ours = mapper_options(SfmOptions(), refine_camera=True)
     assert ours.mapper.filter_max_reproj_error < colmap.mapper.filter_max_reproj_error
     assert ours.mapper.abs_pose_max_error < colmap.mapper.abs_pose_max_error
     assert ours.triangulation.create_max_angle_error < colmap.triangulation.create_max_angle_error
@@ -38,45 +38,40 @@ def test_non_positive_threshold_is_rejected(field):
         SfmOptions(**{field: 0.0}).validate()
 
 
-def _database(path, pairs):
-    """A COLMAP database of 8 frames named in flight order with the given two-view geometries:
-    pairs = [(frame a, frame b, configuration name, inliers), ...]."""
-    import numpy as np
+def test_initial_pair_needs_triangulation_angle_then_most_inliers():
+    from dronecap.sfm.colmap_steps import choose_initial_pair
+
+    measured = [
+        (400, 1.5, 1, 2),  # most inliers: a near-duplicate view (no triangulation angle)
+        (150, 9.0, 3, 7),  # the winner: enough angle, most inliers among those
+        (90, 20.0, 4, 9),
+    ]
+    assert choose_initial_pair(measured, 8.0) == (150, 9.0, 3, 7)
+    assert choose_initial_pair(measured, 25.0) is None  # COLMAP's own choice then
+
+
+def test_initial_pair_on_real_frames_has_angle_and_stays_local(lego_dir, tmp_path):
+    """12 lego views, exhaustive matching: the pair chosen lies within init_max_gap frames and
+    its measured median triangulation angle passes the threshold."""
+    import cv2
     import pycolmap
 
-    with pycolmap.Database.open(path) as db:
-        cam = pycolmap.Camera(model="PINHOLE", width=160, height=160, params=[120, 120, 80, 80])
-        cid = db.write_camera(cam)
-        # written in reverse so that database ids and flight order disagree
-        ids = {
-            i: db.write_image(pycolmap.Image(name=f"{i:05d}.png", camera_id=cid))
-            for i in reversed(range(8))
-        }
-        for a, b, config, n in pairs:
-            g = pycolmap.TwoViewGeometry()
-            g.config = getattr(pycolmap.TwoViewGeometryConfiguration, config)
-            g.inlier_matches = np.zeros((n, 2), np.uint32)
-            db.write_two_view_geometry(ids[a], ids[b], g)
-    return ids
+    from dronecap.sfm.blender_flight import blender_flight
+    from dronecap.sfm.colmap_steps import extract, initial_pair
 
-
-def test_initial_pair_skips_planar_and_adjacent_pairs(tmp_path):
-    from dronecap.sfm.colmap_steps import epipolar_init_pair
-
-    ids = _database(
-        tmp_path / "db.db",
-        [
-            (0, 5, "PLANAR_OR_PANORAMIC", 300),  # most inliers, but a homography start
-            (2, 3, "CALIBRATED", 200),  # general geometry, but adjacent frames
-            (1, 4, "CALIBRATED", 80),
-            (3, 7, "UNCALIBRATED", 120),  # the winner: general geometry, 4 frames apart
-        ],
+    ds, _ = blender_flight(lego_dir, count=12)
+    (tmp_path / "images").mkdir()
+    names = [f"{i:05d}.png" for i in range(ds.n)]
+    for n, im in zip(names, ds.images, strict=True):
+        cv2.imwrite(str(tmp_path / "images" / n), im[..., 0])
+    opts = SfmOptions(num_threads=1, init_max_gap=6, init_min_tri_angle=4.0)
+    k = ds.intrinsics
+    extract(
+        tmp_path / "db.db", tmp_path / "images", names, opts, ("PINHOLE", [k.fx, k.fy, k.cx, k.cy])
     )
-    assert set(epipolar_init_pair(tmp_path / "db.db")) == {ids[3], ids[7]}
-
-
-def test_no_general_pair_leaves_the_choice_to_colmap(tmp_path):
-    from dronecap.sfm.colmap_steps import epipolar_init_pair
-
-    _database(tmp_path / "db.db", [(0, 5, "PLANAR", 300), (1, 6, "PANORAMIC", 100)])
-    assert epipolar_init_pair(tmp_path / "db.db") is None
+    pycolmap.match_exhaustive(tmp_path / "db.db", device=pycolmap.Device.cpu)
+    pair, info = initial_pair(tmp_path / "db.db", opts)
+    assert pair is not None and info["measured"] > 0
+    a, b = (int(f[:5]) for f in info["chosen"]["frames"])
+    assert 3 <= abs(a - b) <= 6
+    assert info["chosen"]["tri_angle_deg"] >= 4.0

@@ -1,0 +1,119 @@
+"""Which camera SfM starts from and what COLMAP may change: ``--camera fixed|refine|estimate``.
+
+- **fixed**: the known camera (frames.h5 intrinsics from a calibration or the simulator's
+  flight.json, or ``--camera-from`` an earlier posed.h5 of the same drone) is given to COLMAP
+  with its distortion model and never changed. Known intrinsics are what make forward flights
+  reconstructable (self-calibration scatters, see docs/sfm.md).
+- **refine**: start from the known camera; bundle adjustment refines the focal length(s) and the
+  distortion. The principal point stays where the calibration put it (on 160-px frames COLMAP
+  cannot pin it down; AI-deck calibrations put it 30-60 px off the centre row).
+- **estimate**: self-calibration (SIMPLE_RADIAL). With a known camera its principal point is kept
+  (never assumed at the centre when it is known); without, COLMAP puts it at the image centre.
+- **auto** (default): fixed when a camera is known (``camera_source`` "calibration" or
+  "flight.json", a frames.h5 without the attribute but with intrinsics, or ``--camera-from``),
+  estimate otherwise.
+
+Pixel coordinates: dronecap cameras put the centre of pixel (u, v) at (u + 0.5, v + 0.5), as
+COLMAP does, so parameters go to COLMAP unchanged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+from dronecap.camera import Camera
+from dronecap.datasets.format import Dataset, open_dataset
+from dronecap.errors import InputError
+
+ONE_PARAM_FOCAL = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")  # COLMAP models with a single f
+ESTIMATE_FOCAL_FACTOR = 1.2  # COLMAP's first guess of f: 1.2 x the larger image side
+ASPECT_TOLERANCE = 0.01  # --camera-from: image aspect ratios may differ by this fraction
+
+
+@dataclass(frozen=True)
+class CameraPlan:
+    """The camera handed to COLMAP and what bundle adjustment may refine."""
+
+    mode: str  # "fixed" | "refine" | "estimate"
+    camera: Camera | None  # start values; None: COLMAP guesses (SIMPLE_RADIAL, centred)
+    source: str  # where the known camera came from ("calibration", a posed.h5 path, "none")
+
+    @property
+    def refine(self) -> bool:
+        """True when focal length and distortion are refined (refine, estimate)."""
+        return self.mode != "fixed"
+
+    def colmap(self) -> tuple[str, list[float]] | None:
+        """(COLMAP model name, params in COLMAP's order) or None; see :func:`colmap_camera`."""
+        return None if self.camera is None else colmap_camera(self.camera)
+
+
+def colmap_camera(k: Camera) -> tuple[str, list[float]]:
+    """(COLMAP model name, params) of a camera; a one-focal model with fx != fy becomes OPENCV
+    (same maths, two focal lengths). Pixel conventions agree: no shift."""
+    if k.model in ONE_PARAM_FOCAL and abs(k.fx - k.fy) > 1e-9 * k.fx:
+        d = (list(k.distortion) + [0.0] * 4)[:4]
+        return "OPENCV", [k.fx, k.fy, k.cx, k.cy, *d]
+    if k.model in ONE_PARAM_FOCAL:
+        return k.model, [k.fx, k.cx, k.cy, *k.distortion]
+    return k.model, [k.fx, k.fy, k.cx, k.cy, *k.distortion]
+
+
+def camera_from_colmap(model: str, params, width: int, height: int) -> Camera:
+    """dronecap Camera of a COLMAP camera (same pixel-centre convention, values unchanged)."""
+    p = [float(x) for x in params]
+    if model in ONE_PARAM_FOCAL:
+        fx = fy = p[0]
+        cx, cy, dist = p[1], p[2], tuple(p[3:])
+    else:
+        fx, fy, cx, cy, dist = p[0], p[1], p[2], p[3], tuple(p[4:])
+    return Camera(fx, fy, cx, cy, int(width), int(height), model=model, distortion=dist)
+
+
+def camera_of_posed(path: Path, width: int, height: int) -> Camera:
+    """The camera stored in an earlier reconstruction (posed.h5), scaled to ``width x height``.
+
+    Raises:
+        InputError: not a posed.h5 with intrinsics, or an image aspect that differs.
+    """
+    posed = open_dataset(path, kinds=("posed",))
+    k = posed.intrinsics
+    if k is None:
+        raise InputError("--camera-from: this posed.h5 has no camera", path)
+    aspect_a, aspect_b = k.width / k.height, width / height
+    if abs(aspect_a / aspect_b - 1) > ASPECT_TOLERANCE:
+        raise InputError(
+            f"--camera-from: its camera is for {k.width}x{k.height} images, the frames are "
+            f"{width}x{height} (different aspect ratio)",
+            path,
+        )
+    return k if (k.width, k.height) == (width, height) else k.scaled_to(width, height)
+
+
+def plan_camera(ds: Dataset, mode: str, camera_from: Path | None = None) -> CameraPlan:
+    """Resolve ``--camera`` for the frames ``ds`` (see the module docstring).
+
+    Raises:
+        InputError: fixed/refine asked with no known camera, or a bad ``camera_from``.
+    """
+    h, w = ds.images.shape[1:3]
+    source = str(ds.attrs.get("camera_source", "calibration" if ds.intrinsics else "none"))
+    known = ds.intrinsics if source != "none" else None
+    if camera_from is not None:
+        known, source = camera_of_posed(Path(camera_from), w, h), str(camera_from)
+    if mode == "auto":
+        mode = "fixed" if known is not None else "estimate"
+    if known is None:
+        if mode != "estimate":
+            raise InputError(
+                f"--camera {mode} needs a known camera: ingest with --intrinsics (a calibration "
+                "or flight.json) or give --camera-from an earlier posed.h5"
+            )
+        return CameraPlan("estimate", None, "none")
+    if mode == "estimate":  # self-calibrate, but keep the known principal point
+        f = ESTIMATE_FOCAL_FACTOR * max(w, h)
+        start = Camera(f, f, known.cx, known.cy, w, h, "SIMPLE_RADIAL", (0.0,))
+        return CameraPlan("estimate", start, source)
+    return CameraPlan(mode, dataclasses.replace(known), source)

@@ -1,0 +1,120 @@
+"""When the first attempt registers too little, try the report's remedies, within a time budget.
+
+The remedies, in order (each only when it applies): exhaustive matching (instead of sequential),
+contrast normalisation before SIFT (CLAHE, :mod:`dronecap.capture.contrast`), more features
+(twice the keypoints, half the contrast threshold), and the known camera kept fixed (when
+``--camera estimate`` was asked although frames.h5 has a calibrated camera). Each attempt runs on
+top of the best settings so far: a remedy that helped stays, one that did not is dropped. The
+loop stops as soon as ``opts.retry_below`` of the frames register, or when ``opts.retry_budget``
+seconds have gone on retries (an attempt already started finishes). The report's ``attempts``
+lists every attempt (remedies in effect, frames registered, seconds) and ``remedy`` names the
+one that produced the kept model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dronecap.sfm.camera_plan import CameraPlan
+from dronecap.sfm.options import SfmOptions
+from dronecap.sfm.reconstruct import ColmapResult, reconstruct
+
+MAX_EXHAUSTIVE = 400  # frames: above this exhaustive matching is too slow to be a remedy
+
+
+@dataclasses.dataclass
+class Attempt:
+    """One reconstruction attempt and what it gave."""
+
+    remedies: list[str]  # remedies in effect (empty: the first attempt)
+    result: ColmapResult
+    seconds: float
+
+    @property
+    def registered(self) -> int:
+        """Frames in the chosen model (0 when none)."""
+        rec = self.result.reconstruction
+        return 0 if rec is None else int(rec.num_reg_images())
+
+    def score(self) -> tuple[int, float]:
+        """Ordering key: more frames first, then lower reprojection error."""
+        rec = self.result.reconstruction
+        err = float(rec.compute_mean_reprojection_error()) if rec is not None else np.inf
+        return self.registered, -err
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able summary for the report."""
+        return {
+            "remedies": self.remedies,
+            "registered": self.registered,
+            "seconds": round(self.seconds, 2),
+            "work": self.result.work.name,
+        }
+
+
+def remedies(
+    opts: SfmOptions, plan: CameraPlan, known: CameraPlan | None, n: int
+) -> list[tuple[str, Any]]:
+    """(name, change) pairs that apply, in order; a change maps (opts, plan) -> (opts, plan).
+
+    ``known``: the fixed plan of a calibrated camera, when one exists and ``plan`` estimates.
+    """
+    out: list[tuple[str, Any]] = []
+    if opts.resolved_matcher(n) == "sequential" and n <= MAX_EXHAUSTIVE:
+        out.append(("exhaustive matching", lambda o, p: (_set(o, matcher="exhaustive"), p)))
+    if not opts.clahe:
+        out.append(("contrast normalisation (CLAHE)", lambda o, p: (_set(o, clahe=True), p)))
+    out.append(
+        (
+            "more features",
+            lambda o, p: (
+                _set(o, max_features=2 * o.max_features, peak_threshold=o.peak_threshold / 2),
+                p,
+            ),
+        )
+    )
+    if known is not None and plan.mode == "estimate":
+        out.append(("known camera, fixed", lambda o, p: (o, known)))
+    return out
+
+
+def _set(opts: SfmOptions, **changes: Any) -> SfmOptions:
+    return dataclasses.replace(opts, **changes)
+
+
+def reconstruct_with_retries(
+    images: np.ndarray,
+    sfm_dir: Path,
+    opts: SfmOptions,
+    plan: CameraPlan,
+    known: CameraPlan | None,
+    progress: bool = True,
+) -> tuple[Attempt, list[Attempt]]:
+    """The best attempt and all attempts (work folders ``work``, ``work_retry1``, ...)."""
+    n = len(images)
+    t = time.perf_counter()
+    first = Attempt([], reconstruct(images, sfm_dir / "work", opts, plan, progress), 0.0)
+    first.seconds = time.perf_counter() - t
+    attempts, best = [first], first
+    best_opts, best_plan = opts, plan
+    t_retry = time.perf_counter()
+    for k, (name, change) in enumerate(remedies(opts, plan, known, n), start=1):
+        if best.registered >= opts.retry_below * n:
+            break
+        if time.perf_counter() - t_retry > opts.retry_budget:
+            break
+        o, p = change(best_opts, best_plan)
+        if progress:
+            print(f"sfm: {best.registered}/{n} frames registered; retrying with {name}")
+        t = time.perf_counter()
+        res = reconstruct(images, sfm_dir / f"work_retry{k}", o, p, progress)
+        att = Attempt([*best.remedies, name], res, time.perf_counter() - t)
+        attempts.append(att)
+        if att.score() > best.score():
+            best, best_opts, best_plan = att, o, p
+    return best, attempts
