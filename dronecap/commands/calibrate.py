@@ -78,7 +78,10 @@ def run(args: argparse.Namespace) -> int:
         views, rejected, size, decoded = pick_video_views(args.video, board, args.max_views)
         print(f"{args.video}: {decoded} frames, {len(views)} well-spread views of the board")
     else:
-        views, rejected, size = find_boards(read_images(args.images), board)
+        from dronecap.progress import progress_bar
+
+        images = progress_bar(read_images(args.images), desc="detect", unit="image")
+        views, rejected, size = find_boards(images, board)
     cal = calibrate(views, size, board, args.model, rejected, args.max_view_error)
     write_calibration(out, cal.record())
     if args.plot:
