@@ -3,8 +3,10 @@
 A calibration video holds thousands of near-identical frames; calibrating on all of them is slow
 and weights the poses the operator lingered on. :func:`pick_video_views` keeps the sharpest frame
 (variance of the Laplacian) of each of ``CANDIDATES_PER_VIEW x max_views`` equal stretches of
-the video, finds the board in those, drops the blurry ones, and then picks views by farthest-point
-sampling on where the board's outline lands in the image (position, size and tilt at once).
+the video (half a second each when the container does not say how long it is), finds the board
+in those as it goes (only the corners are kept), drops the blurry ones, and then picks views
+by farthest-point sampling on where the board's outline lands in the image (position, size and
+tilt at once).
 """
 
 from __future__ import annotations
@@ -80,30 +82,16 @@ def pick_video_views(
         raise InputError("--video must be a video file (give images as IMAGES...)", path)
     name = Path(path).name
     expected = src.info.expected_frames or 0
-    stretch = max(1, -(-expected // (CANDIDATES_PER_VIEW * max_views)))
-    candidates: list[tuple[float, str, np.ndarray]] = []  # sharpest frame of each stretch
-    best: tuple[float, str, np.ndarray] | None = None
-    decoded = 0
-    bar = progress_bar(src.frames(), total=expected or None, desc="scan", unit="frame",
-                       disable=None if progress else True)  # fmt: skip
-    for frame in bar:
-        decoded += 1
-        if frame.image is None:
-            continue
-        gray = to_gray(frame.image)
-        s = sharpness(gray)
-        if best is None or s > best[0]:
-            best = (s, f"{name}#{frame.index}", gray)
-        if (frame.index + 1) % stretch == 0:
-            candidates.append(best)
-            best = None
-    if best is not None:
-        candidates.append(best)
-    if not candidates:
-        raise InputError("no decodable frame in the video", path)
-    size = candidates[0][2].shape[::-1]
-    views, rejected, scores = [], {}, {}
-    for s, label, gray in candidates:
+    if expected:
+        stretch = max(1, -(-expected // (CANDIDATES_PER_VIEW * max_views)))
+    else:  # length unknown: two candidates per second of video
+        stretch = max(1, round(src.info.fps / 2))
+    views: list[View] = []
+    rejected: dict[str, str] = {}
+    scores: dict[str, float] = {}
+
+    def consider(s: float, label: str, gray: np.ndarray) -> None:
+        """Find the board in a candidate (only candidates are kept: no frames in memory)."""
         det = board.detect(gray)
         if det is None:
             rejected[label] = "board not found"
@@ -112,6 +100,27 @@ def pick_video_views(
         else:
             views.append(View(label, det))
             scores[label] = s
+
+    best: tuple[float, str, np.ndarray] | None = None  # sharpest frame of the current stretch
+    decoded, size = 0, (0, 0)
+    bar = progress_bar(src.frames(), total=expected or None, desc="scan", unit="frame",
+                       disable=None if progress else True)  # fmt: skip
+    for frame in bar:
+        decoded += 1
+        if frame.image is None:
+            continue
+        gray = to_gray(frame.image)
+        size = (gray.shape[1], gray.shape[0])
+        s = sharpness(gray)
+        if best is None or s > best[0]:
+            best = (s, f"{name}#{frame.index}", gray)
+        if (frame.index + 1) % stretch == 0:
+            consider(*best)
+            best = None
+    if best is not None:
+        consider(*best)
+    if not size[0]:
+        raise InputError("no decodable frame in the video", path)
     if views:
         med = float(np.median(list(scores.values())))
         for v in [v for v in views if scores[v.name] < BLUR_RATIO * med]:
@@ -119,7 +128,7 @@ def pick_video_views(
         views = [v for v in views if v.name not in rejected]
     chosen, repeats = spread_views(views, size, max_views, [scores[v.name] for v in views])
     rejected.update(repeats)
-    return chosen, rejected, (int(size[0]), int(size[1])), decoded
+    return chosen, rejected, size, decoded
 
 
 def spread_views(
