@@ -191,3 +191,19 @@ def test_aruco_grid_through_a_known_pinhole(tmp_path):
     assert rc == 0 and len(got["views_used"]) == 6 and got["target"] == board.record()
     assert got["fx"] == pytest.approx(400.0, rel=0.01) and got["fy"] == pytest.approx(400, rel=0.01)
     assert got["cx"] == pytest.approx(330.0, abs=1.5) and got["cy"] == pytest.approx(236.0, abs=1.5)
+
+
+def test_a_view_with_large_error_is_rejected_and_the_rest_solved_again(lens_images):
+    from dataclasses import replace
+
+    from dronecap.camera.calibrate import View
+
+    views, _, size = find_boards(lens_images, AUTO)
+    rng = np.random.default_rng(0)
+    bad = views[0].detection
+    noisy = bad.image_points + rng.normal(0, 4.0, bad.image_points.shape).astype(np.float32)
+    views[0] = View("bent", replace(bad, image_points=noisy))  # ~5.7 px RMS of corner noise
+    cal = calibrate(views, size, AUTO)
+    assert cal.rejected["bent"].startswith("large error")
+    assert "bent" not in cal.view_errors and len(cal.view_errors) == 7
+    assert cal.rms < 0.2 and cal.camera.fx == pytest.approx(300.0, rel=0.005)
