@@ -192,12 +192,6 @@ class Dataset:
             if not ((nf[:, 0] >= 0).all() and (nf[:, 1] > nf[:, 0]).all()):
                 i = int(np.flatnonzero(~((nf[:, 0] >= 0) & (nf[:, 1] > nf[:, 0])))[0])
                 return f"near_far: must satisfy 0 <= near < far, frame {i} has {nf[i].tolist()}"
-        if self.aabb is not None and (bad := self._aabb_problem()) is not None:
-            return f"aabb: {bad}"
-        if self.normalization is not None:
-            m = self.normalization
-            if not _float_array(m, (4, 4)):
-                return f"normalization: must be a finite float [4, 4], found {_describe(m)}"
         if self.intrinsics is not None:
             k = self.intrinsics
             if not isinstance(k, Camera):
@@ -206,6 +200,12 @@ class Dataset:
                 return f"intrinsics: {problem}"
             if (k.width, k.height) != (w, h):
                 return f"intrinsics: are for {k.width}x{k.height} but images are {w}x{h}"
+        if self.aabb is not None and (bad := self._aabb_problem()) is not None:
+            return f"aabb: {bad}"
+        if self.normalization is not None:
+            m = self.normalization
+            if not _float_array(m, (4, 4)):
+                return f"normalization: must be a finite float [4, 4], found {_describe(m)}"
         if self.background is not None:
             bg = self.background
             if len(bg) != im.shape[3]:

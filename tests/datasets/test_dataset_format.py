@@ -170,3 +170,75 @@ def test_failed_write_leaves_no_file_and_keeps_the_old_one(tmp_path: Path) -> No
     with pytest.raises(TypeError):
         write_dataset(tmp_path / "fresh.h5", ds)
     assert sorted(q.name for q in tmp_path.iterdir()) == ["d.h5"]
+
+
+def test_every_array_is_checksummed_and_a_flipped_image_byte_is_an_error(tmp_path: Path) -> None:
+    ds = full_dataset()
+    ds.images = np.full_like(ds.images, 77)  # constant images: lzf stores long runs
+    p = write_dataset(tmp_path / "d.h5", ds)
+    with h5py.File(p) as f:
+        arrays = []
+        f.visititems(lambda name, obj: arrays.append(obj) if isinstance(obj, h5py.Dataset) else 0)
+        assert arrays and all(a.fletcher32 for a in arrays)
+        offset = f["images"].id.get_chunk_info(1).byte_offset  # frame 1's stored bytes
+    raw = bytearray(p.read_bytes())
+    raw[offset + 2] ^= 0x01
+    p.write_bytes(bytes(raw))
+    with pytest.raises(DatasetError, match="images: checksum mismatch") as err:
+        open_dataset(p)
+    assert_one_line_naming(err, p)
+
+
+def test_version_1_files_without_checksums_still_read(tmp_path: Path) -> None:
+    """A file as version 1 wrote them: default HDF5 layout, no filters but lzf, str attrs."""
+    p = tmp_path / "v1.h5"
+    images = np.arange(2 * 3 * 4 * 1, dtype=np.uint8).reshape(2, 3, 4, 1)
+    with h5py.File(p, "w") as f:
+        f.attrs["format"] = "dronecap"
+        f.attrs["format_version"] = 1
+        f.attrs["kind"] = "posed"
+        f.create_dataset("images", data=images, chunks=(1, 3, 4, 1), compression="lzf")
+        f["poses"] = np.tile(np.eye(4), (2, 1, 1))
+        f["names"] = np.array(["a", "b"], dtype=h5py.string_dtype())
+        f.attrs["intrinsics"] = '{"fx": 3.0, "fy": 3.0, "cx": 2.0, "cy": 1.5, "width": 4, ' + (
+            '"height": 3, "model": "PINHOLE", "distortion": []}'
+        )
+        f.attrs["provenance"] = "{}"
+    ds = open_dataset(p)
+    np.testing.assert_array_equal(ds.images, images)
+    assert ds.names == ["a", "b"] and ds.intrinsics == Intrinsics(3.0, 3.0, 2.0, 1.5, 4, 3)
+    assert read_header(p)["format_version"] == 1
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("poses", "reflect", "poses: frame 1: rotation is a reflection"),
+        ("poses", "scale", "poses: frame 1: rotation is not orthonormal"),
+        ("poses", "nan", "poses: contains non-finite values"),
+        ("near_far", np.array([[0.1, 2.0], [3.0, 2.0], [0.3, 4.0]]), "near_far: must satisfy"),
+        ("aabb", np.array([[0.0, 0, np.inf], [1, 1, 1]]), "aabb: must be finite"),
+        ("aabb", np.array([[50.0, 50, 50], [51, 51, 51]]), "outside every camera's view"),
+        ("background", (1.0, float("nan"), 0.0), "background: values must be finite"),
+        ("background", (1.0, 1.5, 0.0), "background: values must be finite and in [0, 1]"),
+        ("intrinsics", Intrinsics(float("inf"), 6.5, 2.5, 2.0, 5, 4), "intrinsics: non-finite"),
+        ("timestamps", np.array([0.0, np.nan, 1.0]), "timestamps: contains non-finite"),
+    ],
+)
+def test_geometry_is_validated_on_write(tmp_path: Path, field: str, value, message: str) -> None:
+    ds = full_dataset()
+    ds.poses[:, :3, 3] = [[0, 0, -3], [0.5, 0, -3], [-0.5, 0, -3]]  # in front of the box
+    if isinstance(value, str) and value == "reflect":
+        ds.poses[1, :3, 0] *= -1
+    elif isinstance(value, str) and value == "scale":
+        ds.poses[1, :3, :3] *= 1.05
+    elif isinstance(value, str) and value == "nan":
+        ds.poses[2, 0, 3] = np.nan
+    else:
+        setattr(ds, field, value)
+    p = tmp_path / "bad.h5"
+    with pytest.raises(DatasetError) as err:
+        write_dataset(p, ds)
+    assert_one_line_naming(err, p)
+    assert message in str(err.value)
+    assert not p.exists()
