@@ -85,8 +85,8 @@ def extract(trainer, resolution: int = 128, opacity: float = 0.5) -> Geometry:
         )
     verts, faces, normals, _ = marching_cubes(sigma, level=level, spacing=tuple(spacing))
     verts = verts.astype(np.float64) + origin
-    # skimage's normals follow the gradient (towards higher density): outwards is the opposite
-    normals = -normals.astype(np.float64)
+    # skimage's normals point down the gradient: from the dense side out (tested on a cube)
+    normals = normals.astype(np.float64)
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     cols = []
     with torch.no_grad():
