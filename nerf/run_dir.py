@@ -11,6 +11,7 @@ A run folder (``dronecap train --out RUN``) holds:
 ``eval_<stem>.json`` one per dataset ``dronecap eval`` scored the model on
 ``renders/``        test views as PNGs; ``compare.png``: ground truth | render
 ``cost.json``       the GAP9 cost of the resolved config (written by the train command)
+``progress/``       half-resolution previews of a held-out view at each check of the curve
 =================== ========================================================================
 
 :func:`read_resolved` is the one reader of a run's configuration (the cost command uses it).
@@ -31,8 +32,11 @@ from dronecap.datasets.format import Dataset, open_dataset
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, sha256_file
 
-from .config import TrainConfig, config_from_dict
+from . import budget
+from .budget import BudgetConfig
+from .config import SIZED_FIELDS, TrainConfig, config_from_dict
 from .resolve import Resolved, resolve
+from .sizing import MemoryFn
 
 if TYPE_CHECKING:
     from .trainer import Trainer
@@ -44,6 +48,8 @@ COST = "cost.json"
 RENDERS = "renders"
 COMPARE = "compare.png"
 COMPARE_VIEWS = 4  # test views in the ground truth | render image
+PROGRESS = "progress"
+PREVIEW_SCALE = 0.5  # progress previews at half resolution
 DATASET_KINDS = ("dataset", "shard")
 # fields a resumed run may change: the step target, and what the data decides (a model
 # continued on another dataset keeps the n_max it was built with)
@@ -172,8 +178,16 @@ def train_run(
     backend: str = "auto",
     evaluate: bool = True,
     resume_from: str | Path | None = None,
+    memory_fn: MemoryFn | None = None,
+    until: BudgetConfig | None = None,
 ) -> dict:
     """Train on a dataset file into a run folder, checkpointing, then evaluate all test views.
+
+    ``memory_fn`` sizes a ``sized`` config's table within its memory budget (see
+    :func:`nerf.resolve.resolve`); ``until`` is when training stops (:mod:`nerf.budget`:
+    the config's step count by default, or a time budget, target PSNR, plateau), and the
+    held-out checks it makes are the run's PSNR-vs-time curve (``metrics.json`` "curve",
+    half-resolution previews in ``progress/``).
 
     Everything is checked before training starts: the configuration's ranges, the dataset
     (train frames; test or val views unless ``evaluate`` is False), a checkpoint in
@@ -196,13 +210,16 @@ def train_run(
     dataset_path = Path(dataset_path)
     out = Path(out_dir)
     ds = open_dataset(dataset_path, kinds=DATASET_KINDS)
-    wanted = resolve(cfg, ds, sha256_file(dataset_path))
+    wanted = resolve(cfg, ds, sha256_file(dataset_path), memory_fn)
     if evaluate and test_views(ds).size == 0:
         raise InputError(
             "has no test or val views to evaluate on: re-run `dronecap split`, or pass "
             "--no-eval to train without a test score",
             dataset_path,
         )
+    if out.exists() and not out.is_dir():
+        raise InputError("is a file, expected a run folder", out)
+    out.mkdir(parents=True, exist_ok=True)  # a read-only or full target fails before training
     ckpt = out / CHECKPOINT
     if resume_from is not None:
         source = Path(resume_from)
@@ -216,18 +233,30 @@ def train_run(
     if resume_from is not None:
         info["resumed_from"] = str(Path(resume_from).resolve())
     write_json(out / RUN_INFO, info)
-    steps = trainer.cfg.steps
+    if trainer.cfg.sized and progress:
+        for k in ("channels", *SIZED_FIELDS):
+            print(f"sized: {k} = {getattr(trainer.cfg, k)}: {trainer.resolved.reasons[k]}")
+    until = until or BudgetConfig()
+    state = budget.start(until, trainer.cfg.steps, trainer.step, trainer.train_seconds)
+    held_out = budget.held_out_views(ds.split, until.check_views)
     ms: list[float] = []
     history: list[dict] = []
     bar = progress_bar(
-        total=steps, initial=trainer.step, desc="train", unit="step", disable=not progress
-    )
+        total=state.planned_steps, initial=trainer.step, desc="train", unit="step",
+        disable=not progress,
+    )  # fmt: skip
     try:
-        while trainer.step < steps:
+        while not budget.finished(state, trainer.step):
+            trainer.cfg = trainer.cfg.replace(steps=state.planned_steps)  # lr follows the plan
             log = trainer.train_step()
             ms.append(log["ms"])
+            budget.after_step(until, state, trainer.step, trainer.train_seconds, log["ms"] / 1e3)
+            bar.total = state.planned_steps
             bar.update(1)
-            if trainer.step % 10 == 0 or trainer.step == steps:
+            if budget.check_due(until, state, trainer.step) and held_out.size:
+                _check(trainer, ds, held_out, until, state, out)
+            done = budget.finished(state, trainer.step)
+            if trainer.step % 10 == 0 or done:
                 bar.set_postfix(
                     loss=f"{log['loss']:.4f}",
                     psnr=f"{log['psnr']:.1f}",
@@ -239,7 +268,7 @@ def train_run(
                     {k: log[k] for k in ("step", "loss", "psnr", "samples", "rays")}
                     | {"seconds": trainer.train_seconds}
                 )
-            if trainer.step % checkpoint_every == 0 or trainer.step == steps:
+            if trainer.step % checkpoint_every == 0 or done:
                 trainer.save(ckpt)
     except KeyboardInterrupt:
         bar.close()
@@ -261,9 +290,35 @@ def train_run(
         "config": dataclasses.asdict(trainer.cfg),
         "reasons": dict(trainer.resolved.reasons),
         "history": history,
+        "curve": state.curve,
+        "until": dataclasses.asdict(until) | {"stop_reason": state.stop_reason},
     }
     write_json(out / METRICS, metrics)
     return metrics
+
+
+def _check(
+    trainer: Trainer,
+    ds: Dataset,
+    views: np.ndarray,
+    until: BudgetConfig,
+    state: budget.BudgetState,
+    out: Path,
+) -> None:
+    """A held-out check: PSNR of ``views`` onto the curve (may stop the run) and a
+    half-resolution preview of the first one in ``progress/step_NNNNNN.png``."""
+    from .outputs import write_png
+    from .render import render_preview
+
+    psnr = trainer.evaluate(ds, views)["psnr"]
+    why = budget.record_check(until, state, trainer.step, trainer.train_seconds, psnr)
+    preview = render_preview(
+        trainer.volume(), ds.poses[views[0]], ds.intrinsics, trainer.scene.background,
+        PREVIEW_SCALE,
+    )  # fmt: skip
+    write_png(out / PROGRESS / f"step_{trainer.step:06d}.png", preview)
+    if why:
+        print(f"dronecap: stopping at step {trainer.step}: {why}", file=sys.stderr, flush=True)
 
 
 def evaluate_run(trainer: Trainer, ds: Dataset, out: Path, progress: bool = True) -> dict:

@@ -381,7 +381,10 @@ class Trainer:
             first = str(err).strip().splitlines()[0]
             msg = f"checkpoint weights do not fit its configuration: {first}"
             raise InputError(msg, path) from None
-        self.optimizer.load_state_dict(ck["optimizer"])
+        try:
+            self.optimizer.load_state_dict(ck["optimizer"])
+        except (ValueError, KeyError) as err:
+            raise InputError(f"checkpoint optimizer state does not fit: {err}", path) from None
         self.load_grid_state(ck["grid"])
         self.step = int(ck["step"])
         self.train_seconds = float(ck["train_seconds"])
