@@ -74,7 +74,7 @@ class SelectionParams:
         default=8.0, metadata={"help": "most median track motion (pixels) between kept frames"}
     )
     min_parallax: float = field(
-        default=0.7,
+        default=0.5,
         metadata={"help": "most track parallax (pixels beyond a homography) between kept frames"},
     )
     min_survival: float = field(

@@ -13,9 +13,10 @@ from the tracks the two frames share:
   so much that the two frames overlap little);
 - ``motion``: median track displacement (pixels of the frame);
 - ``parallax``: median distance (pixels) of the tracks of ``j`` from where a homography fitted
-  to the shared tracks (RANSAC) puts them. A homography explains a camera rotation or a flat
-  scene exactly, so what is left is the depth-dependent motion that triangulation needs: an
-  object orbited on a uniform backdrop shows parallax while its image barely moves.
+  to the shared tracks puts them (least squares, normalised DLT, refitted once without the
+  tracks more than max(1 px, twice the median) off). A homography explains a camera rotation or
+  a flat scene exactly, so what is left is the depth-dependent motion that triangulation
+  needs: an object orbited on a uniform backdrop shows parallax while its image barely moves.
 
 These are the ``pair_*`` tables ``[N, window]`` (entry ``[j, d - 1]`` is the pair ``(j - d,
 j)``; NaN when unknown) that :mod:`.selection` reads; they are stored in ``frames.h5`` so a
@@ -32,11 +33,11 @@ import numpy as np
 from dronecap.capture.contrast import normalize_contrast
 
 WINDOW = 12  # frames back over which pair measures are kept (bounds the selection's max_gap)
-MAX_TRACKS = 200  # tracks kept alive per frame (160x160 frames)
+MAX_TRACKS = 150  # tracks kept alive per frame (160x160 frames)
 MIN_SHARED = 12  # fewer shared tracks: motion and parallax are NaN for the pair
 MIN_DISTANCE = 5  # pixels between corners
 FB_ERROR = 0.7  # largest forward-backward tracking error (pixels) of a kept track
-HOMOGRAPHY_POINTS = 64  # tracks the homography is fitted to (all are measured against it)
+FIT_TRACKS = 64  # about this many tracks fit each homography (all are measured against it)
 PAIR_NAMES = ("pair_survival", "pair_motion", "pair_parallax")
 
 
@@ -66,9 +67,8 @@ class FeatureTracker:
             ok = self._track(img)
             self._ids, self._pts = self._ids[ok], self._pts_next[ok]
         self._top_up(img)
-        for d, past in enumerate(self._history, start=1):
-            if past is not None:
-                row[:, d - 1] = pair_measures(past, (self._ids, self._pts))
+        measures = pair_measures(list(self._history), (self._ids, self._pts), max(gray.shape))
+        row[:, : measures.shape[1]] = measures
         self.rows.append(row)
         self._history.appendleft((self._ids.copy(), self._pts.copy()))
         self._prev = img
@@ -83,7 +83,7 @@ class FeatureTracker:
         """LK from the previous good frame, checked backwards; sets ``_pts_next``; bool mask."""
         import cv2
 
-        lk = {"winSize": (11, 11), "maxLevel": 3}
+        lk = {"winSize": (9, 9), "maxLevel": 2}
         p0 = self._pts.reshape(-1, 1, 2)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev, img, p0, None, **lk)
         back, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev, p1, None, **lk)
@@ -117,29 +117,91 @@ class FeatureTracker:
 
 
 def pair_measures(
-    a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]
-) -> tuple[float, float, float]:
-    """(survival, motion px, parallax px) from frame ``a`` to frame ``b``.
+    history: list[tuple[np.ndarray, np.ndarray] | None],
+    current: tuple[np.ndarray, np.ndarray],
+    size: float,
+) -> np.ndarray:
+    """Survival, motion (px) and parallax (px) from each earlier frame to the current one.
 
-    Each frame is (ids int64 [K], points float32 [K, 2]) with ids in increasing order (tracks
-    are only appended, so they are). See the module docstring for the three measures.
+    Args:
+        history: earlier frames, most recent first, each (ids int64 [K], points float32 [K, 2])
+            with ids in increasing order (tracks are only appended), or None (skipped frame).
+        current: the current frame, same form.
+        size: the frame's larger side in pixels (normalises the homography fit).
+
+    Returns:
+        float64 [3, len(history)]: rows survival, motion, parallax (see the module docstring);
+        NaN where unknown (a skipped frame; fewer than MIN_SHARED shared tracks for motion and
+        parallax).
     """
-    import cv2
+    ids_c, pts_c = current
+    w, s = len(history), len(ids_c)
+    src = np.zeros((w, s, 2))
+    shared = np.zeros((w, s), bool)
+    tracks = np.full(w, np.nan)
+    for d, past in enumerate(history):
+        if past is None:
+            continue
+        ids_h, pts_h = past
+        tracks[d] = len(ids_h)
+        if len(ids_h) == 0 or s == 0:
+            continue
+        at = np.minimum(np.searchsorted(ids_h, ids_c), len(ids_h) - 1)
+        shared[d] = ids_h[at] == ids_c
+        src[d, shared[d]] = pts_h[at[shared[d]]]
+    out = np.full((3, w), np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out[0] = shared.sum(1) / tracks
+    enough = shared.sum(1) >= MIN_SHARED
+    if not enough.any():
+        return out
+    src, shared = src[enough], shared[enough]
+    dst = np.broadcast_to(pts_c.astype(float), src.shape)
+    out[1, enough] = _masked_median(np.linalg.norm(dst - src, axis=2), shared)
+    # Homography by normalised DLT, refitted once without the tracks far off the first fit.
+    scale = 2.0 / size
+    fit = slice(None, None, max(1, s // FIT_TRACKS))  # an even subset keeps the fit cheap
+    weights = shared.astype(float)
+    for _ in range(2):
+        hmat = _fit_homography(
+            src[:, fit] * scale - 1.0, dst[:, fit] * scale - 1.0, weights[:, fit]
+        )
+        err = _transfer_error(hmat, src * scale - 1.0, dst * scale - 1.0) / scale
+        cut = np.maximum(2.0 * _masked_median(err, shared), 1.0)[:, None]
+        weights = (shared & (err <= cut)).astype(float)
+    out[2, enough] = _masked_median(err, shared)
+    return out
 
-    ids_a, pts_a = a
-    ids_b, pts_b = b
-    if len(ids_a) == 0:
-        return float("nan"), float("nan"), float("nan")
-    _, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
-    survival = len(ia) / len(ids_a)
-    if len(ia) < MIN_SHARED:
-        return survival, float("nan"), float("nan")
-    pa, pb = pts_a[ia], pts_b[ib]
-    motion = float(np.median(np.linalg.norm(pb - pa, axis=1)))
-    step = max(1, len(pa) // HOMOGRAPHY_POINTS)  # an even subset keeps the fit cheap
-    hmat, _ = cv2.findHomography(pa[::step], pb[::step], cv2.USAC_FAST, 1.0)
-    if hmat is None:
-        return survival, motion, float("nan")
-    mapped = cv2.perspectiveTransform(pa.reshape(-1, 1, 2), hmat).reshape(-1, 2)
-    parallax = float(np.median(np.linalg.norm(pb - mapped, axis=1)))
-    return survival, motion, parallax
+
+def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Median over axis 1 of ``values`` [B, S] where ``mask`` [B, S] (NaN where empty)."""
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)  # masked values sort last
+    n = mask.sum(1)
+    rows = np.arange(len(n))
+    lo, hi = ordered[rows, np.maximum(n - 1, 0) // 2], ordered[rows, np.maximum(n, 1) // 2]
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
+
+
+def _fit_homography(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted least-squares homographies [B, 3, 3] (DLT) mapping src [B, S, 2] to dst."""
+    x, y = src[..., 0], src[..., 1]
+    u, v = dst[..., 0], dst[..., 1]
+    one, zero = np.ones_like(x), np.zeros_like(x)
+    rows = np.stack(
+        [
+            np.stack([-x, -y, -one, zero, zero, zero, u * x, u * y, u], -1),
+            np.stack([zero, zero, zero, -x, -y, -one, v * x, v * y, v], -1),
+        ],
+        2,
+    ).reshape(len(x), -1, 9)  # [B, 2S, 9]
+    normal = np.matmul(rows.transpose(0, 2, 1) * np.repeat(weights, 2, axis=1)[:, None], rows)
+    _, vectors = np.linalg.eigh(normal)
+    return vectors[..., 0].reshape(-1, 3, 3)
+
+
+def _transfer_error(hmat: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Distance [B, S] between dst and src [B, S, 2] mapped through hmat [B, 3, 3]."""
+    p = np.einsum("bij,bsj->bsi", hmat[:, :, :2], src) + hmat[:, None, :, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mapped = p[..., :2] / p[..., 2:]
+    return np.linalg.norm(mapped - dst, axis=2)
