@@ -16,7 +16,7 @@
    the video path keeps, why it drops the rest, its time and accuracy.
 
 Single thread (``cv2.setNumThreads(1)``); times are medians of 3 runs. Writes
-benchmarks/results/calibration.md.
+benchmarks/results/calibration.md and calibration_left.png.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT))  # the test suite's board renderer (tests/camera/c
 
 from dronecap.camera import Camera  # noqa: E402
 from dronecap.camera.calibrate import calibrate, find_boards  # noqa: E402
+from dronecap.camera.plot import plot_calibration  # noqa: E402
 from dronecap.camera.targets import Board  # noqa: E402
 from dronecap.camera.views import pick_video_views, read_images  # noqa: E402
 from tests.camera.conftest import board_images, board_poses  # noqa: E402
@@ -45,6 +46,7 @@ from tests.capture.conftest import write_video  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "calibration"
 RESULTS = ROOT / "benchmarks" / "results" / "calibration.md"
+PLOT = RESULTS.with_name("calibration_left.png")  # coverage + per-view error, chessboard left
 REPEATS = 3
 LENS = Camera(300.0, 302.0, 165.0, 118.0, 320, 240, "OPENCV", (-0.25, 0.08, 0.001, -0.001))
 FISHEYE = Camera(160.0, 160.0, 160.0, 120.0, 320, 240, "OPENCV_FISHEYE", (0.05, -0.01, 0, 0))
@@ -175,6 +177,11 @@ def main() -> None:
         sys.exit(f"calibration data not found at {DATA}")
     load = os.getloadavg()
     ref = reference_rows()
+    board = Board("chessboard", 9, 6)
+    views, rejected, size = find_boards(
+        read_images([str(DATA / "opencv_chessboard/left*.jpg")]), board
+    )
+    plot_calibration(calibrate(views, size, board, rejected=rejected), views, PLOT)
     syn = synthetic_rows()
     vid = video_rows()
     text = "\n".join(
@@ -196,6 +203,8 @@ def main() -> None:
             "| d RMS px | floor met | s |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
             *ref,
+            "",
+            f"![chessboard left: corners and per-view error]({PLOT.name})",
             "",
             "With `--subpix-window 0` the corner refinement window is 0.4 x the corner spacing "
             "instead of OpenCV's fixed 11 px: the RMS drops (left02/right02, whose squares are "

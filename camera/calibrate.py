@@ -185,9 +185,7 @@ def _solve(
     try:
         if model == "fisheye":
             return _solve_fisheye(views, size)
-        rms, k, dist, _, _, std, _, per_view = cv2.calibrateCameraExtended(
-            obj, img, size, None, None
-        )
+        _, k, dist, _, _, std, _, per_view = cv2.calibrateCameraExtended(obj, img, size, None, None)
     except cv2.error as err:
         raise InputError(
             f"OpenCV could not calibrate from these views: {_cv_message(err)}"
@@ -250,7 +248,7 @@ def _warnings(
             "image): the distortion there is extrapolated; add views with the board there"
         )
     names = DIST_NAMES[model]
-    values = dict(zip(names, cal.camera.opencv_coeffs(), strict=False))
+    values = dict(zip(names, (*cal.camera.opencv_coeffs(), 0.0), strict=False))  # k3 may be 0
     loose = [
         f"{n} = {values[n]:.3g} +- {cal.std[n]:.2g}"
         for n in names
