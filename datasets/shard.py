@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -128,7 +129,8 @@ def shard_dataset(
 
     Args:
         in_path: a dataset (kind "dataset") with poses and a split.
-        out_dir: folder to write (replaced atomically): client_K.h5 files and summary.json.
+        out_dir: folder to write (replaced atomically): client_K.h5 files and summary.json. An
+            existing folder holding anything else is refused, not replaced.
         clients: number of drones K >= 1.
         scheme: "iid" or "sector".
         seed: seed of the iid shuffle (recorded for both schemes).
@@ -144,6 +146,11 @@ def shard_dataset(
         raise InputError(f"--clients must be at least 1, got {clients}")
     if seed < 0:
         raise InputError(f"--seed must be >= 0, got {seed}")
+    existing = sorted(p.name for p in out_dir.iterdir()) if out_dir.is_dir() else []
+    if other := [name for name in existing if not SHARD_FILE.fullmatch(name)]:
+        raise InputError(
+            f"holds files that are not shards ({', '.join(other[:3])}): not replacing it", out_dir
+        )
     ds = open_dataset(in_path, kinds=("dataset",))
     if ds.poses is None:
         raise InputError("has no camera poses to shard by", in_path)
@@ -187,7 +194,7 @@ def shard_dataset(
     params = {"scheme": scheme, "clients": clients, "seed": seed}
     prov = provenance("shard", params, {in_path.name: digest})
     prov["parent"] = ds.provenance
-    with atomic_output(out_dir) as tmp:
+    with atomic_output(out_dir, replaceable=SHARD_FILE.fullmatch) as tmp:
         tmp.mkdir()
         for k in range(clients):
             mine = train[owner == k]
@@ -207,6 +214,9 @@ def shard_dataset(
             write_dataset(tmp / entry["file"], _shard(ds, idx, assignment, k, prov, in_path))
         (tmp / "summary.json").write_text(json.dumps(summary, indent=1))
     return out_dir
+
+
+SHARD_FILE = re.compile(r"client_\d+\.h5|summary\.json")  # what a shard folder holds
 
 
 def _shard(

@@ -15,7 +15,7 @@ import hashlib
 import os
 import re
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from dronecap.errors import OutputError
@@ -51,19 +51,29 @@ def storage_error(err: BaseException) -> str | None:
 
 
 @contextlib.contextmanager
-def atomic_output(path: str | Path) -> Iterator[Path]:
+def atomic_output(
+    path: str | Path, replaceable: Callable[[str], bool] | None = None
+) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
 
     An exception (or Ctrl-C) inside the block removes the temporary file, so a reader never sees
     a half-written output under the final name, and an existing output is kept. Temporaries of
     ``path`` left by a killed process (``kill -9``) are removed when the next writer starts.
-    Works for files and for directories (an existing folder is replaced only by a folder).
+    Works for files and for directories: an existing folder is replaced only by a folder, and
+    only when everything in it is something the new folder holds too or ``replaceable(name)``
+    allows (a folder output pointed at a workspace never deletes the user's files).
 
     Raises:
-        OutputError: the storage refused (full disk, read-only, a file or folder in the way).
+        OutputError: the storage refused (full disk, read-only, a file or folder in the way),
+            or an existing folder holds files this output does not own.
     """
     final = Path(path)
+    if final.name in ("", ".", ".."):
+        raise OutputError("is not a file or folder name to write to", path)
+    if final.is_dir() and final.resolve() in (Path.cwd().resolve(), *Path.cwd().resolve().parents):
+        raise OutputError("is the current folder or one of its parents: not replacing it", path)
     tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    old = final.with_name(f".{final.name}.old-{os.getpid()}")
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
         _remove_stale_temporaries(final)
@@ -71,8 +81,16 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
         if final.is_dir() and not final.is_symlink():
             if not tmp.is_dir():
                 raise OutputError("is a folder, expected a file", final)
-            _remove(final)
-        elif final.exists() and tmp.is_dir():
+            _check_foreign(final, tmp, replaceable)
+            os.replace(final, old)  # kept until the new folder is in place
+            try:
+                os.replace(tmp, final)
+            except OSError:
+                os.replace(old, final)
+                raise
+            _remove(old)
+            return
+        if final.exists() and tmp.is_dir():
             raise OutputError("is a file, expected a folder", final)
         os.replace(tmp, final)
     except OSError as err:
@@ -87,12 +105,36 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
             _remove(tmp)
 
 
+def _check_foreign(final: Path, new: Path, replaceable: Callable[[str], bool] | None) -> None:
+    """Refuse to replace folder ``final`` while it holds names the ``new`` folder does not."""
+    mine = {p.name for p in new.iterdir()}
+    foreign = sorted(
+        p.name
+        for p in final.iterdir()
+        if p.name not in mine and not (replaceable is not None and replaceable(p.name))
+    )
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise OutputError(
+            f"holds {shown}, which this output does not write: not replacing it (move them, "
+            "or write elsewhere)",
+            final,
+        )
+
+
 def _remove_stale_temporaries(final: Path) -> None:
-    """Remove ``final``'s temporaries left by this process or by dead ones (``kill -9``);
-    those of a live process (a concurrent writer) are left alone."""
-    for p in final.parent.glob(f".{glob.escape(final.name)}.tmp-*"):
-        pid = p.name.rsplit("-", 1)[-1]
-        if pid.isdigit() and (int(pid) == os.getpid() or not _alive(int(pid))):
+    """Clean up after writers of ``final`` that were killed (``kill -9``) or are this process:
+    their temporaries are removed, and a replaced folder kept aside is put back when ``final``
+    is missing (the kill fell between the two renames). A live writer's files are left alone."""
+    for p in sorted(final.parent.glob(f".{glob.escape(final.name)}.*-*")):
+        kind, _, pid = p.name[len(final.name) + 2 :].partition("-")
+        if kind not in ("tmp", "old") or not pid.isdigit():
+            continue
+        if int(pid) != os.getpid() and _alive(int(pid)):
+            continue
+        if kind == "old" and not final.exists():
+            os.replace(p, final)
+        else:
             _remove(p)
 
 

@@ -65,7 +65,9 @@ SHARD: list[Case] = [
     ("posed input", lambda f, t: [str(f["posed"])], "expected one of ['dataset']"),
     ("no test", lambda f, t: [str(_with_split(f, t, [0]))], "has no test frames"),
     ("missing input", lambda f, t: [str(t / "nope.h5")], "no such file"),
-]
+    ("into a workspace", lambda f, t: [str(f["dataset"]), "-o", str(f["dataset"].parent)],
+     "holds files that are not shards (dataset.h5, posed.h5)"),
+]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -146,7 +148,7 @@ def test_split_catalogue(small_files, tmp_path: Path, name, argv, message) -> No
 @pytest.mark.parametrize(("name", "argv", "message"), SHARD, ids=[c[0] for c in SHARD])
 def test_shard_catalogue(small_files, tmp_path: Path, name, argv, message) -> None:
     args = argv(small_files, tmp_path)
-    _check("shard", [*args, "-o", str(tmp_path / "shards_out")], message, tmp_path)
+    _check("shard", ["-o", str(tmp_path / "shards_out"), *args], message, tmp_path)
 
 
 @pytest.mark.parametrize("index", range(22))

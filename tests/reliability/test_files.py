@@ -31,16 +31,50 @@ def test_failed_block_removes_the_temporary_and_keeps_the_old_output(
 def test_folder_output_replaces_a_folder_only(tmp_path: Path) -> None:
     folder = tmp_path / "shards"
     folder.mkdir()
-    (folder / "old.h5").write_text("x")
+    (folder / "a.h5").write_text("x")
     with atomic_output(folder) as tmp:
         tmp.mkdir()
-        (tmp / "new.h5").write_text("y")
-    assert [p.name for p in folder.iterdir()] == ["new.h5"]
+        (tmp / "a.h5").write_text("y")
+        (tmp / "b.h5").write_text("z")
+    assert sorted(p.name for p in folder.iterdir()) == ["a.h5", "b.h5"]
+    assert (folder / "a.h5").read_text() == "y"
     with pytest.raises(OutputError, match="is a folder, expected a file"):
         with atomic_output(folder) as tmp:
             tmp.write_text("a file")
-    assert [p.name for p in folder.iterdir()] == ["new.h5"]
+    assert sorted(p.name for p in folder.iterdir()) == ["a.h5", "b.h5"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["shards"]
+
+
+def test_a_folder_holding_other_files_is_not_replaced(tmp_path: Path) -> None:
+    ws = tmp_path / "workspace"
+    ws.mkdir()
+    (ws / "dataset.h5").write_text("the user's input")
+    (ws / "transforms.json").write_text("old output")
+    with pytest.raises(OutputError, match=r"holds dataset.h5, which this output does not write"):
+        with atomic_output(ws) as tmp:
+            tmp.mkdir()
+            (tmp / "transforms.json").write_text("new output")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["workspace"]
+    assert (ws / "transforms.json").read_text() == "old output"
+    with atomic_output(ws, replaceable=lambda name: name.endswith(".h5")) as tmp:
+        tmp.mkdir()
+        (tmp / "transforms.json").write_text("new output")
+    assert [p.name for p in ws.iterdir()] == ["transforms.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["workspace"]
+
+
+def test_a_folder_set_aside_by_a_killed_writer_is_put_back(tmp_path: Path) -> None:
+    """Killed between moving the old folder aside and renaming the new one in: the next writer
+    restores the old folder first, then replaces it as usual."""
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], text=True,
+                          capture_output=True, check=True)  # fmt: skip
+    aside = tmp_path / f".shards.old-{int(dead.stdout)}"
+    aside.mkdir()
+    (aside / "client_0.h5").write_text("old")
+    with pytest.raises(RuntimeError), atomic_output(tmp_path / "shards"):
+        raise RuntimeError("this writer fails too")
+    assert [p.name for p in tmp_path.iterdir()] == ["shards"]
+    assert (tmp_path / "shards" / "client_0.h5").read_text() == "old"
 
 
 def test_leftovers_of_a_killed_writer_are_removed_not_those_of_a_live_one(tmp_path: Path) -> None:
