@@ -49,3 +49,25 @@ def test_wrong_aspect_calibration_is_one_line_and_no_output(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "aspect" in err[0] and str(calib) in err[0]
     assert not (tmp_path / "frames.h5").exists()
+
+
+@pytest.mark.slow
+def test_simulated_lens_reaches_frames_h5_through_flight_json(tmp_path):
+    """simulate (distorted, off-centre lens) -> ingest: frames.h5 holds flight.json's camera
+    through the centre crop and resize, distortion unchanged, camera_source "flight.json"."""
+    from dronecap.camera import Camera
+    from dronecap.capture.framing import make_framing
+
+    video = tmp_path / "f.mp4"
+    args = ["--frames", "6", "--distortion=-0.1,0.02", "--principal-offset", "0.05,-0.1"]
+    assert main(["-q", "simulate", "-o", str(video), *args, "--size", "324x244"]) == 0
+    assert main(["-q", "ingest", str(video), "--workdir", str(tmp_path)]) == 0
+    intr = json.loads((tmp_path / "f.json").read_text())["intrinsics"]
+    assert intr["distortion"][:2] == [-0.1, 0.02]
+    k = np.array([[intr["fx"], 0, intr["cx"]], [0, intr["fy"], intr["cy"]], [0, 0, 1]])
+    source = Camera.from_opencv(k, intr["distortion"], 324, 244)
+    expected = make_framing((324, 244), (160, 160), "center").camera(source)
+    ds = open_dataset(tmp_path / "frames.h5", kinds=("frames",))
+    assert ds.attrs["camera_source"] == "flight.json" and ds.intrinsics == expected
+    # by hand: crop x0 = (324 - 244) / 2 = 40, s = 160 / 244
+    assert ds.intrinsics.cx == pytest.approx((intr["cx"] - 40) * 160 / 244)
