@@ -109,6 +109,7 @@ def _ingest(args: argparse.Namespace, selection: object) -> int:
     from dronecap import workspace
     from dronecap.capture.framing import parse_numbers, parse_size
     from dronecap.capture.ingest import IngestParams, ingest, params_record, tables_to_extra
+    from dronecap.capture.telemetry import parse_columns
     from dronecap.datasets import Dataset, provenance, write_dataset
     from dronecap.errors import InputError
     from dronecap.files import sha256_file
@@ -123,6 +124,10 @@ def _ingest(args: argparse.Namespace, selection: object) -> int:
         intrinsics = _sidecar_calibration(source)
     elif intrinsics.lower() == "none":
         intrinsics = None
+    try:
+        parse_columns(args.columns)
+    except ValueError as err:
+        raise InputError(str(err)) from None
     offset = None
     if args.camera_offset is not None:
         try:

@@ -153,6 +153,14 @@ def test_ingest_stores_priors_and_dropped_frames(tmp_path, capsys):
     np.testing.assert_allclose(e["prior_c2w"][:, 0, 3], 3e-3 * camera)
     np.testing.assert_allclose(ds.timestamps, camera * PERIOD_US * 1e-6)
     assert e["dropped_before"][delivered.index(10)] == 3
+    # A replay keeps the priors of the frames it keeps.
+    sub = tmp_path / "sub.h5"
+    args = ["--replay", str(tmp_path / "frames.h5"), "--min-motion", "12", "-o", str(sub)]
+    assert main(["ingest", *args, "--workdir", str(tmp_path)]) == 0
+    re = open_dataset(sub)
+    assert 0 < re.n < ds.n and re.extra["prior_c2w"].shape == (re.n, 4, 4)
+    camera = np.array(delivered)[re.source_index]
+    np.testing.assert_allclose(re.extra["prior_c2w"][:, 0, 3], 3e-3 * camera)
 
 
 def bad(tmp_path: Path, capsys, *args: str) -> str:
