@@ -228,11 +228,37 @@ def calibration_record(cam: Camera, **fields: Any) -> dict[str, Any]:
 
 
 def write_calibration(path: str | Path, record: dict[str, Any]) -> None:
-    """Write a calibration record as pretty JSON, atomically."""
+    """Write a calibration record atomically: pretty JSON, or for a ``.yml``/``.yaml``/``.xml``
+    path OpenCV FileStorage as OpenCV's calibration samples write it (``camera_matrix`` in
+    OpenCV's pixel convention, ``distortion_coefficients``, ``image_width``, ``image_height``,
+    ``avg_reprojection_error``, ``fisheye_model``) for tools that read those."""
     from dronecap.files import atomic_output
 
+    suffix = Path(path).suffix.lower()
+    text = (
+        _opencv_storage_text(record, suffix)
+        if suffix in OPENCV_STORAGE_SUFFIXES
+        else json.dumps(record, indent=1) + "\n"
+    )
     with atomic_output(path) as tmp:
-        tmp.write_text(json.dumps(record, indent=1) + "\n")
+        tmp.write_text(text)
+
+
+def _opencv_storage_text(record: dict[str, Any], suffix: str) -> str:
+    import cv2
+
+    fs = cv2.FileStorage(suffix, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    fs.write("image_width", int(record["width"]))
+    fs.write("image_height", int(record["height"]))
+    fs.write("model", record["model"])
+    fs.write("fisheye_model", int(record["model"] == "fisheye"))
+    k = np.array(record["K"], float)  # dronecap's convention ...
+    k[:2, 2] -= DRONECAP_OFFSET - OPENCV_OFFSET  # ... to OpenCV's: cx, cy - 0.5
+    fs.write("camera_matrix", k)
+    fs.write("distortion_coefficients", np.asarray(record["distortion"], float).reshape(1, -1))
+    if record.get("rms") is not None:
+        fs.write("avg_reprojection_error", float(record["rms"]))
+    return fs.releaseAndGetString()
 
 
 def _finite_json(x: Any) -> Any:

@@ -51,7 +51,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=MAX_VIEW_ERROR_PX,
         help="reject views whose RMS error exceeds this (px) and 3x the median",
     )
-    p.add_argument("-o", "--output", help=f"calibration JSON (default: WORKDIR/{OUTPUT})")
+    p.add_argument(
+        "-o",
+        "--output",
+        help=f"calibration JSON, or .yml/.xml for OpenCV's format (default: WORKDIR/{OUTPUT})",
+    )
     p.add_argument("--plot", help="also write a PNG of the corner coverage and per-view errors")
 
 

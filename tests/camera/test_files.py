@@ -125,3 +125,16 @@ def test_ros_camera_info_yaml(tmp_path):
     assert cam.model == "OPENCV" and cam.distortion == (-0.08, 0.01, 0.0, 0.0)  # k3 = 0
     path.write_text(path.read_text().replace("plumb_bob", "equidistant").replace(", 0.0]", "]"))
     assert load_camera(str(path), (324, 244))[0].is_fisheye
+
+
+def test_opencv_storage_output_reads_back_and_is_opencv_convention(tmp_path):
+    cam = Camera.from_opencv(np.array(K), DIST, 1280, 960)
+    for name in ("calib.yml", "calib.xml"):
+        path = tmp_path / name
+        write_calibration(path, calibration_record(cam, rms=0.3))
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        k = fs.getNode("camera_matrix").mat()
+        assert (k[0, 2], k[1, 2]) == (649.5, 469.5)  # OpenCV's convention: 650 - 0.5
+        assert fs.getNode("avg_reprojection_error").real() == 0.3
+        fs.release()
+        assert load_camera(str(path), (1280, 960))[0] == cam
