@@ -94,7 +94,8 @@ class Point:
 
 
 def load_runs(paths: list[str | Path]) -> list[Point]:
-    """Points from ``metrics.json`` files with "psnr" and a "config" dict.
+    """Points from ``metrics.json`` files with a "psnr" (top level, or under "test" as
+    ``dronecap train`` writes it) and a "config" dict (a run's resolved configuration).
 
     Raises ValueError naming a file that is unreadable or lacks those keys.
     """
@@ -103,7 +104,8 @@ def load_runs(paths: list[str | Path]) -> list[Point]:
         p = Path(path)
         try:
             doc = json.loads(p.read_text())
-            psnr, cfg_d = float(doc["psnr"]), doc["config"]
+            test = doc.get("test") or {}  # a trainer's metrics.json: scores under "test"
+            psnr, cfg_d = float(doc["psnr"] if "psnr" in doc else test["psnr"]), doc["config"]
         except (OSError, ValueError, KeyError, TypeError) as err:
             raise ValueError(f"{p}: not a metrics.json with 'psnr' and 'config' ({err})") from err
         if not math.isfinite(psnr) or not isinstance(cfg_d, dict):

@@ -131,6 +131,18 @@ def test_search_with_runs_draws_plot(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_search_reads_the_trainers_metrics(tmp_path, capsys):
+    """`dronecap train` writes the scores under "test" and the resolved config beside them."""
+    run = tmp_path / "trained"
+    run.mkdir()
+    cfg = dataclasses.asdict(preset("tiny-dronerf-sized").replace(n_max=223))
+    doc = {"test": {"psnr": 28.1, "ssim": 0.93, "views": 200}, "config": cfg}
+    (run / "metrics.json").write_text(json.dumps(doc))
+    argv = ["cost", "--search", "--budget-l3", "32MB", "--runs", str(run / "metrics.json")]
+    assert main([*argv, "--plot", str(tmp_path / "p.png")]) == 0
+    assert "chosen: trained" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("doc", ["not json", '{"psnr": NaN, "config": {}}', '{"config": {}}'])
 def test_search_refuses_bad_metrics(tmp_path, capsys, doc):
     bad = tmp_path / "metrics.json"
