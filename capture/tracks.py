@@ -184,16 +184,15 @@ def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def _fit_homography(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Weighted least-squares homographies [B, 3, 3] (DLT) mapping src [B, S, 2] to dst."""
-    x, y = src[..., 0], src[..., 1]
-    u, v = dst[..., 0], dst[..., 1]
-    one, zero = np.ones_like(x), np.zeros_like(x)
-    rows = np.stack(
-        [
-            np.stack([-x, -y, -one, zero, zero, zero, u * x, u * y, u], -1),
-            np.stack([zero, zero, zero, -x, -y, -one, v * x, v * y, v], -1),
-        ],
-        2,
-    ).reshape(len(x), -1, 9)  # [B, 2S, 9]
+    b, s = weights.shape
+    rows = np.zeros((b, s, 2, 9))
+    rows[:, :, 0, 0:2] = -src
+    rows[:, :, 0, 2] = -1.0
+    rows[:, :, 1, 3:5] = -src
+    rows[:, :, 1, 5] = -1.0
+    rows[:, :, :, 6:8] = dst[:, :, :, None] * src[:, :, None, :]
+    rows[:, :, :, 8] = dst
+    rows = rows.reshape(b, 2 * s, 9)
     normal = np.matmul(rows.transpose(0, 2, 1) * np.repeat(weights, 2, axis=1)[:, None], rows)
     _, vectors = np.linalg.eigh(normal)
     return vectors[..., 0].reshape(-1, 3, 3)
@@ -201,7 +200,7 @@ def _fit_homography(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> np
 
 def _transfer_error(hmat: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Distance [B, S] between dst and src [B, S, 2] mapped through hmat [B, 3, 3]."""
-    p = np.einsum("bij,bsj->bsi", hmat[:, :, :2], src) + hmat[:, None, :, 2]
+    p = np.matmul(src, hmat[:, :, :2].transpose(0, 2, 1)) + hmat[:, None, :, 2]
     with np.errstate(invalid="ignore", divide="ignore"):
         mapped = p[..., :2] / p[..., 2:]
     return np.linalg.norm(mapped - dst, axis=2)
