@@ -204,7 +204,8 @@ def run_sfm(
     poses, nf = poses[order], nf[order]
     src = ds.source_index if ds.source_index is not None else np.arange(ds.n)
     if gt is not None:
-        report["accuracy"] = accuracy_against(poses[np.isin(all_idx, idx)], src[idx], gt, src)
+        # in the frame before normalisation (metres when aligned to priors: scale 1 expected)
+        report["accuracy"] = accuracy_against(c2w_w, src[idx], gt, src)
 
     t = time.perf_counter()
     with atomic_output(sfm_dir / "model") as tmp:
