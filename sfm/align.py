@@ -172,12 +172,25 @@ def pose_accuracy(
     )
 
 
-def load_ground_truth(path: str | Path) -> dict[int, np.ndarray]:
-    """Read the simulator's ``poses.json``: source frame index -> c2w [4, 4] (OpenCV, metres).
+TUM_MAX_DT = 0.02  # s: a frame matches a TUM pose at most this far away in time
 
-    Expected layout: ``{"frames": [{"index": int, "c2w": 4x4 nested list}, ...], ...}``.
+
+def load_ground_truth(
+    path: str | Path,
+    source_index: np.ndarray | None = None,
+    timestamps: np.ndarray | None = None,
+) -> dict[int, np.ndarray]:
+    """Ground truth as source frame index -> c2w [4, 4] (OpenCV axes).
+
+    Either the simulator's ``poses.json`` / ``flight.json`` (``{"frames": [{"index": int, "c2w":
+    4x4 nested list}, ...]}``) or a TUM trajectory (any file that is not JSON: ``timestamp tx ty
+    tz qx qy qz qw`` lines, :func:`dronecap.datasets.trajectory.read_tum`), whose poses are
+    matched to the frames (``source_index`` int [N], ``timestamps`` float [N] seconds, same clock)
+    by nearest timestamp within :data:`TUM_MAX_DT`.
     """
     path = Path(path)
+    if path.suffix.lower() != ".json":
+        return _tum_ground_truth(path, source_index, timestamps)
     try:
         data = json.loads(path.read_text())
         out = {int(f["index"]): np.asarray(f["c2w"], dtype=np.float64) for f in data["frames"]}
@@ -188,6 +201,33 @@ def load_ground_truth(path: str | Path) -> dict[int, np.ndarray]:
         raise InputError(msg, path) from None
     if any(m.shape != (4, 4) or not np.isfinite(m).all() for m in out.values()):
         raise InputError("every frames[].c2w must be a finite 4x4 matrix", path)
+    return out
+
+
+def _tum_ground_truth(
+    path: Path, source_index: np.ndarray | None, timestamps: np.ndarray | None
+) -> dict[int, np.ndarray]:
+    """TUM poses matched to frames by nearest timestamp (see :func:`load_ground_truth`)."""
+    from dronecap.datasets.trajectory import read_tum
+
+    if source_index is None or timestamps is None:
+        raise InputError("a TUM ground truth needs the frames' timestamps", path)
+    times, c2w = read_tum(path)
+    order = np.argsort(times)
+    times, c2w = times[order], c2w[order]
+    out = {}
+    for s, t in zip(np.asarray(source_index), np.asarray(timestamps, float), strict=True):
+        j = int(np.clip(np.searchsorted(times, t), 1, len(times) - 1)) if len(times) > 1 else 0
+        j = j - 1 if j > 0 and abs(times[j - 1] - t) <= abs(times[j] - t) else j
+        if abs(times[j] - t) <= TUM_MAX_DT:
+            out[int(s)] = c2w[j]
+    if not out:
+        raise InputError(
+            f"no frame time lies within {TUM_MAX_DT * 1000:.0f} ms of a pose in this TUM file "
+            f"(its times {times[0]:.3f}-{times[-1]:.3f} s, the frames' "
+            f"{np.min(timestamps):.3f}-{np.max(timestamps):.3f} s)",
+            path,
+        )
     return out
 
 

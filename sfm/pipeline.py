@@ -136,7 +136,11 @@ def run_sfm(
     except ValueError as err:
         raise InputError(str(err)) from None
     ds = open_dataset(frames_path)
-    gt = load_ground_truth(gt_path) if gt_path is not None else None
+    gt = None
+    if gt_path is not None:
+        src = ds.source_index if ds.source_index is not None else np.arange(ds.n)
+        times = ds.timestamps if ds.timestamps is not None else np.arange(ds.n, dtype=float)
+        gt = load_ground_truth(gt_path, src, times)
     if ds.n < MIN_FRAMES:
         raise InputError(f"only {ds.n} frame(s); SfM needs at least {MIN_FRAMES}", frames_path)
     plan = plan_camera(ds, opts.camera, camera_from)

@@ -36,7 +36,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", help="input frames.h5 (default: WORKDIR/frames.h5)")
     p.add_argument("-o", "--output", help="output posed.h5 (default: WORKDIR/posed.h5)")
     p.add_argument("--sfm-dir", help="model, PLY and report folder (default: WORKDIR/sfm)")
-    p.add_argument("--gt", help="ground-truth poses.json (simulator) to measure accuracy against")
+    p.add_argument(
+        "--gt",
+        help="ground truth to measure accuracy against: the simulator's flight.json/poses.json, "
+        "or a TUM trajectory (matched to the frames by timestamp, within 20 ms)",
+    )
     p.add_argument(
         "--camera-from",
         help="posed.h5 of an earlier reconstruction of the same drone: use its camera",

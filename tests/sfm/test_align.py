@@ -143,3 +143,17 @@ def test_load_ground_truth(tmp_path):
         load_ground_truth(bad)
     with pytest.raises(InputError, match="not found"):
         load_ground_truth(tmp_path / "missing.json")
+
+
+def test_tum_ground_truth_is_matched_by_nearest_timestamp(tmp_path):
+    from dronecap.datasets.trajectory import write_tum
+
+    times = np.array([0.0, 0.1, 0.2, 0.3])
+    poses = poses_at(np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], float))
+    path = write_tum(tmp_path / "gt.txt", times, poses)
+    # frames at 0.105 s (5 ms from pose 1), 0.21 s (10 ms from pose 2), 0.25 s (50 ms: none)
+    gt = load_ground_truth(path, np.array([7, 8, 9]), np.array([0.105, 0.21, 0.25]))
+    assert sorted(gt) == [7, 8]
+    assert np.allclose(gt[7][:3, 3], [1, 0, 0]) and np.allclose(gt[8][:3, 3], [2, 0, 0])
+    with pytest.raises(InputError, match="within 20 ms"):
+        load_ground_truth(path, np.array([0]), np.array([5.0]))
