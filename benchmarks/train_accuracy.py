@@ -117,11 +117,9 @@ def memory_mb(cfg_dict: dict) -> float:
     """Modelled GAP9 memory (MB, the paper's Table II accounting: parameters, gradients, Adam
     state, activations, occupancy grid, image) of a run's configuration (gap9/model.py)."""
     from dronecap.gap9.model import cost_report
-    from dronecap.nerf.config import TrainConfig
+    from dronecap.nerf.config import config_from_dict
 
-    d = dict(cfg_dict)
-    d["betas"] = tuple(d["betas"])
-    return cost_report(TrainConfig(**d))["memory"]["untiled"]["total"] / 1e6
+    return cost_report(config_from_dict(cfg_dict))["memory"]["untiled"]["total"] / 1e6
 
 
 def report(args: argparse.Namespace) -> None:

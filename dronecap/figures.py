@@ -54,7 +54,7 @@ def _sfm(stage_dir: Path) -> str:
 
 
 def _train(stage_dir: Path) -> str:
-    m = _json(_find(stage_dir, "metrics.json")).get("test", {})
+    m = _json(_find(stage_dir, "metrics.json")).get("test") or {}  # None: --no-eval
     text = f"PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}" if "psnr" in m else ""
     cost = _json(_find(stage_dir, "cost.json"))
     verdicts = cost.get("verdicts", {})

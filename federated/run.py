@@ -58,7 +58,7 @@ from dronecap.federated.fedavg import (
     unpack_update,
 )
 from dronecap.files import atomic_output
-from dronecap.nerf.config import TrainConfig
+from dronecap.nerf.config import TrainConfig, config_from_dict
 
 log = logging.getLogger("dronecap.federate")
 
@@ -110,9 +110,7 @@ class FedSettings:
 
     def train_config(self) -> TrainConfig:
         """The trainer configuration (its schedule spans the whole step budget)."""
-        cfg = dict(self.cfg)
-        cfg["betas"] = tuple(cfg["betas"])
-        return TrainConfig(**cfg).replace(steps=self.total_steps, seed=self.seed)
+        return config_from_dict(self.cfg).replace(steps=self.total_steps, seed=self.seed)
 
 
 def save_settings(run_dir: Path, s: FedSettings) -> None:
