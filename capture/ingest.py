@@ -2,8 +2,11 @@
 
 :func:`ingest` returns an :class:`IngestResult` (kept images, per-decoded-frame tables, the
 decision and a summary) and never writes files; the ``dronecap ingest`` command stores the result
-as ``frames.h5``. Every decoded frame is converted (gray, crop, area resize) in a background
-thread while the main thread scores it, so decoding overlaps with scoring on two cores.
+as ``frames.h5``. Every decoded frame is converted (demosaic, gray, crop, area resize) and scored
+(:mod:`.quality`) in a background thread while the main thread checks it for stream defects
+(:mod:`.defects`) and tracks features through it (:mod:`.tracks`), so the two halves overlap on
+two cores. Telemetry of a capture folder (:mod:`.telemetry`) is read and checked before any
+frame is decoded.
 """
 
 from __future__ import annotations
@@ -243,7 +246,11 @@ def _decode_and_score(
 
     pattern: list[str | None] = [None if bayer == "none" else bayer]
 
-    def convert() -> Iterator[tuple[DecodedFrame, np.ndarray | None]]:
+    blank = np.zeros((framing.size[1], framing.size[0]), np.uint8)
+
+    def convert() -> Iterator[tuple[DecodedFrame, np.ndarray | None, tuple[float, ...]]]:
+        """Decode thread: demosaic, gray, crop, resize and the per-frame scores."""
+        prev: np.ndarray | None = None  # previous decoded frame (frozen check)
         for f in frames:
             image = f.image
             if image is not None and image.ndim == 2 and image.dtype == np.uint8:
@@ -251,12 +258,13 @@ def _decode_and_score(
                     pattern[0] = detect_bayer(image)
                 if pattern[0] is not None:
                     image = demosaic(image, pattern[0])
-            yield f, None if image is None else framing.apply(image)
+            gray = None if image is None else framing.apply(image)
+            g = gray if gray is not None else blank
+            yield f, gray, (*frame_scores(g), frame_diff(prev, g))
+            prev = g
 
-    blank = np.zeros((framing.size[1], framing.size[0]), np.uint8)
     tracker = FeatureTracker(window)
     flips = UpsideDownCheck()
-    prev: np.ndarray | None = None  # previous decoded frame (frozen check)
     good: np.ndarray | None = None  # previous frame without a defect (tear reference)
     rows: list[tuple[float, ...]] = []
     small: list[np.ndarray] = []
@@ -270,7 +278,7 @@ def _decode_and_score(
         disable=None if progress else True,
         leave=False,
     )
-    for f, gray in bar:
+    for f, gray, scores in bar:
         defect = 0
         if gray is not None:
             if torn_row(gray, good) is not None:
@@ -279,15 +287,14 @@ def _decode_and_score(
                 defect = UPSIDE_DOWN
         g = gray if gray is not None else blank
         tracker.update(g if gray is not None and defect == 0 else None)
-        rows.append((*frame_scores(g), frame_diff(prev, g)))
-        prev = g
+        rows.append(scores)
         if gray is not None and defect == 0:
             good = gray
         small.append(g)
         meta.append((f.index, f.timestamp, f.name, gray is not None, defect))
     bar.close()
-    scores = np.array(rows, float).reshape(-1, len(SCORE_NAMES))
-    tables: dict[str, np.ndarray] = {name: scores[:, i] for i, name in enumerate(SCORE_NAMES)}
+    table = np.array(rows, float).reshape(-1, len(SCORE_NAMES))
+    tables: dict[str, np.ndarray] = {name: table[:, i] for i, name in enumerate(SCORE_NAMES)}
     tables["source_index"] = np.array([m[0] for m in meta], np.int64)
     tables["timestamp"] = np.array([m[1] for m in meta], float)
     tables["readable"] = np.array([m[3] for m in meta], bool)
