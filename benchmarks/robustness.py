@@ -156,13 +156,21 @@ def true_focal(gt: dict) -> float:
     return float(k["fx"]) * 160 / min(int(k["width"]), int(k["height"]))
 
 
-def run_case(name: str, work: Path, frames: int, steps: int) -> dict:
-    """Simulate, ingest, sfm, split, train (and evaluate) one case; returns its record."""
+def case_dir(work: Path, name: str) -> Path:
+    """Work folder of a case ("aideck (all)" -> aideck_all)."""
+    return work / re.sub(r"\W+", "_", name).strip("_")
+
+
+def run_case(name: str, work: Path, frames: int, steps: int, train: bool = True) -> dict:
+    """Simulate, ingest, sfm, split, train (and evaluate) one case; returns its record
+    (``train`` False: stop after SfM)."""
     flags, kind = CASES[name]
-    d = work / re.sub(r"\W+", "_", name).strip("_")
+    d = case_dir(work, name)
     done = d / "result.json"
     if done.exists():
-        return json.loads(done.read_text())
+        rec = json.loads(done.read_text())
+        if "psnr" in rec or "error" in rec or not train:
+            return rec
     d.mkdir(parents=True, exist_ok=True)
     log = d / "log.txt"
     rec: dict = {"case": name, "kind": kind, "flags": " ".join(flags),
@@ -189,6 +197,8 @@ def run_case(name: str, work: Path, frames: int, steps: int) -> dict:
         posed = open_dataset(d / "posed.h5")
         rec["focal_err_pct"] = 100 * (posed.intrinsics.fx / true_focal(gt) - 1)
         rec["camera"] = f"{posed.intrinsics.model} {list(np.round(posed.intrinsics.distortion, 3))}"
+        if not train:
+            raise StopIteration
         sh(["split", "--workdir", str(d)], log)
         train = ["train", "--threads", "1", "--steps", str(steps), "--no-progress"]
         sh([*train, "--workdir", str(d)], log)
@@ -207,6 +217,8 @@ def run_case(name: str, work: Path, frames: int, steps: int) -> dict:
                 str(d / "runs" / "pinhole")], log)  # fmt: skip
             m = json.loads((d / "runs" / "pinhole" / "metrics.json").read_text())["test"]
             rec["psnr_ignored"], rec["ssim_ignored"] = m["psnr"], m["ssim"]
+    except StopIteration:
+        rec["note"] = "not trained (time)"
     except Exception as err:  # noqa: BLE001 - a failed case is a result, recorded as such
         rec["error"] = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
     rec["seconds"] = time.perf_counter() - t0
@@ -240,7 +252,7 @@ def table(recs: list[dict], args: argparse.Namespace, load: str) -> str:
     ]
     for r in recs:
         delta = r["psnr"] - clean["psnr"] if clean and "psnr" in r else None
-        note = r.get("error", "")
+        note = r.get("error", r.get("note", ""))
         if "psnr_ignored" in r:
             note = (f"distortion ignored: {r['psnr_ignored']:.2f} dB / {r['ssim_ignored']:.3f}"
                     f" ({r['psnr_ignored'] - r['psnr']:+.2f} dB)")  # fmt: skip
@@ -286,6 +298,8 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/dronecap-robustness"))
     ap.add_argument("--results", default="robustness", help="results file stem")
     ap.add_argument("--snapshot", action="store_true", help="run on the committed HEAD")
+    ap.add_argument("--sfm-only", default="", help="comma-separated cases run only up to SfM")
+    ap.add_argument("--table-only", action="store_true", help="tabulate finished cases only")
     args = ap.parse_args()
     if args.snapshot:
         args.work.mkdir(parents=True, exist_ok=True)
@@ -297,7 +311,13 @@ def main() -> None:
     recs = []
     for name in names:
         print(f"== {name}", flush=True)
-        recs.append(run_case(name, args.work, args.frames, args.steps))
+        if args.table_only:
+            done = case_dir(args.work, name) / "result.json"
+            if done.exists():
+                recs.append(json.loads(done.read_text()))
+            continue
+        train = name not in args.sfm_only.split(",")
+        recs.append(run_case(name, args.work, args.frames, args.steps, train))
         print(json.dumps(recs[-1]), flush=True)
     load = open("/proc/loadavg").read().split()[:3]
     text = table(recs, args, f"load average {' '.join(load)} at the end (2 cores)")
