@@ -60,8 +60,11 @@ def write_video(
     path: Path, images: Iterable[np.ndarray], fps: float, codec: str, doc: dict
 ) -> tuple[Path, Path]:
     """``path`` (the video) and its ground truth ``path.with_suffix('.json')``."""
-    write_gray_video(path, images, fps, codec)
     gt = path.with_suffix(".json")
+    for p in (path, gt):
+        if p.is_dir():
+            raise InputError("is a folder, expected a file to write", p)
+    write_gray_video(path, images, fps, codec)
     with atomic_output(gt) as tmp:
         tmp.write_text(json.dumps(doc))
     return path, gt

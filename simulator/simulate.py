@@ -176,7 +176,7 @@ class SimulatedFlight:
                 "dropped": [s for s in range(self.frames) if s not in got],
                 "duplicated": [x.source for x in d if x.shows != x.source],
                 "torn": [x.source for x in d if x.tear_row is not None and x.shows == x.source],
-                "link": self.capture.link.__dict__,
+                "link": dataclasses.asdict(self.capture.link),
             },
             "sensor": {"name": self.capture.sensor_name, **sensor.describe()},
             "format": fmt,
@@ -260,7 +260,7 @@ def simulate(
     doc["telemetry"] = {
         "file": "metadata.csv" if fmt == "nanocockpit" else "state.csv",
         "rows": len(states["times"]) if fmt == "pulp-dronet" else len(sim.delivered),
-        "noise": noise.__dict__,
+        "noise": dataclasses.asdict(noise),
         "final_yaw_error_deg": float(np.degrees(states["yaw_error"][-1])),
     }
     return formats.write_folder(output, fmt, bar, doc, states, quality)

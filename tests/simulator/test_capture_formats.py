@@ -214,3 +214,13 @@ def test_pulp_dronet_jpeg_is_encoded_once_at_the_file(tmp_path):
     frame = SimulatedFlight("corridor", 4, 0, raw).render_source(2)
     got = cv2.imread(str(out / gt["frames"][2]["file"]), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(got, jpeg_roundtrip(frame, 60))
+
+
+@pytest.mark.parametrize("fmt", ["mp4", "nanocockpit"])
+def test_output_of_the_wrong_kind_one_line(tmp_path, capsys, fmt):
+    target = tmp_path / "out.mp4"
+    target.mkdir() if fmt == "mp4" else target.write_text("x")
+    assert main(["simulate", "--frames", "3", "--format", fmt, "-o", str(target)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(target) in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mp4"]
