@@ -110,9 +110,9 @@ def run_case(name: str, work: Path, n_sim: int) -> dict:
         sfm_args += ["--gt", str(lego_video(source))]
     else:
         fmt = name.split()[1]
-        source = d / "capture"
+        source = work / f"capture_{fmt}_{n_sim}"  # shared by the runs with and without priors
         if not (source / "flight.json").exists():
-            sim = ["simulate", "--workdir", str(d), "--format", fmt, "--frames", str(n_sim)]
+            sim = ["simulate", "-o", str(source), "--format", fmt, "--frames", str(n_sim)]
             if dronecap([*sim, "--seed", "0"], log) != 0:
                 return {"case": name, "error": "simulate failed (see log)"}
         sfm_args += ["--gt", str(source / "flight.json")]
