@@ -16,6 +16,11 @@ subject, so it neither counts as detail nor dilutes the blur measure.
 - ``clipped``: fraction of pixels at <= 2 or >= 253 DN (under/over-exposed, or a saturated
   backdrop: the selection tells them apart with ``detail``).
 - ``detail``: fraction of the frame that is subject (0..1).
+- ``corners``: FAST corners (intensity threshold ``CORNER_THRESHOLD`` DN, non-maximum
+  suppression) on the contrast-normalised frame (:mod:`.contrast`, what the tracker and SfM's
+  CLAHE retry see): a frame with a handful has nothing SIFT can match however textured it looks
+  (a wall seen from close by: 3-6 on Himax test_10's last frames, where SIFT finds 0-4
+  keypoints; >= 59 on every usable frame checked, dimmed to 40 % included).
 - ``frame_diff``: mean absolute difference to the previous decoded frame (DN, computed by the
   ingest loop); ~0 for a frozen (repeated) frame.
 """
@@ -24,12 +29,15 @@ from __future__ import annotations
 
 import numpy as np
 
-SCORE_NAMES = ("sharpness", "brightness", "contrast", "clipped", "detail", "frame_diff")
+from dronecap.capture.contrast import normalize_contrast
+
+SCORE_NAMES = ("sharpness", "brightness", "contrast", "clipped", "detail", "corners", "frame_diff")
 DETAIL_GRADIENT = 6.0  # DN per pixel: weaker gradients are noise or shading, not texture
+CORNER_THRESHOLD = 20  # DN: FAST's centre-to-circle intensity difference
 
 
-def frame_scores(gray: np.ndarray) -> tuple[float, float, float, float, float]:
-    """(sharpness, brightness, contrast, clipped, detail) of one uint8 [H, W] frame."""
+def frame_scores(gray: np.ndarray) -> tuple[float, float, float, float, float, float]:
+    """(sharpness, brightness, contrast, clipped, detail, corners) of one uint8 [H, W] frame."""
     import cv2
 
     mean, std = cv2.meanStdDev(gray)
@@ -45,7 +53,9 @@ def frame_scores(gray: np.ndarray) -> tuple[float, float, float, float, float]:
     detail = float(subject.mean())
     hist = cv2.calcHist([gray], [0], None, [256], [0, 256])
     clipped = float(hist[:3].sum() + hist[253:].sum()) / gray.size
-    return sharpness, brightness, contrast, clipped, detail
+    fast = cv2.FastFeatureDetector_create(CORNER_THRESHOLD)
+    corners = float(len(fast.detect(normalize_contrast(gray))))
+    return sharpness, brightness, contrast, clipped, detail, corners
 
 
 def frame_diff(prev: np.ndarray | None, gray: np.ndarray) -> float:

@@ -7,14 +7,14 @@ decision stored in ``frames.h5`` can be replayed with other thresholds without d
 Rules, in order:
 
 1. Defects and quality. A frame is dropped as ``unreadable``, a stream defect (``torn``,
-   ``upside_down``, ``duplicate``: see :mod:`.defects`), ``black`` (mean < ``black_level``),
-   ``blank`` (contrast < ``blank_contrast`` or less than ``min_detail`` of the frame textured:
-   nothing to match), ``clipped`` (more than ``max_clipped`` of its pixels under/over-exposed
-   AND its textured area below ``detail_ratio`` times that of its neighbours: exposure ate the
-   subject; a saturated backdrop that every frame shares is not over-exposure), ``frozen``
-   (differs from the previous decoded frame by less than ``frozen_diff`` DN), or ``blurry``
-   (sharpness below ``blur_ratio`` times the median of the usable frames within
-   ``blur_window`` frames).
+   ``upside_down``: see :mod:`.defects`), ``black`` (mean < ``black_level``), ``blank``
+   (contrast < ``blank_contrast``, less than ``min_detail`` of the frame textured, or fewer than
+   ``min_corners`` corners: nothing to match), ``clipped`` (more than ``max_clipped`` of its
+   pixels under/over-exposed AND its textured area below ``detail_ratio`` times that of its
+   neighbours: exposure ate the subject; a saturated backdrop that every frame shares is not
+   over-exposure), ``frozen`` (differs from the previous decoded frame by less than
+   ``frozen_diff`` DN: a repeated buffer), or ``blurry`` (sharpness below ``blur_ratio`` times
+   the median of the usable frames within ``blur_window`` frames).
 2. Viewpoint change, from the tracks shared by the last kept frame ``k`` and a later frame
    ``j``: the view has changed enough once the tracks moved ``min_motion`` pixels (median), OR
    their parallax (motion a homography cannot explain: depth-dependent, what triangulation
@@ -99,6 +99,9 @@ class SelectionParams:
     min_detail: float = field(
         default=0.01, metadata={"help": "textured fraction of the frame below which it is blank"}
     )
+    min_corners: float = field(
+        default=20.0, metadata={"help": "FAST corners (CLAHE frame) below which a frame is blank"}
+    )
     max_clipped: float = field(
         default=0.5, metadata={"help": "clipped fraction above which the subject is checked"}
     )
@@ -173,7 +176,9 @@ def quality_reasons(tables: dict[str, np.ndarray], p: SelectionParams) -> np.nda
     checks = [
         (bright < p.black_level, BLACK),
         (
-            (np.asarray(tables["contrast"], float) < p.blank_contrast) | (detail < p.min_detail),
+            (np.asarray(tables["contrast"], float) < p.blank_contrast)
+            | (detail < p.min_detail)
+            | (np.asarray(tables["corners"], float) < p.min_corners),
             BLANK,
         ),
         (np.nan_to_num(diff, nan=np.inf) < p.frozen_diff, FROZEN),

@@ -6,6 +6,7 @@ import numpy as np
 
 from dronecap.capture.selection import (
     BLACK,
+    BLANK,
     BLURRY,
     CLIPPED,
     FROZEN,
@@ -43,6 +44,7 @@ def tables(
         "contrast": np.full(n, 40.0),
         "clipped": np.zeros(n),
         "detail": np.full(n, 0.5),
+        "corners": np.full(n, 200.0),
         "frame_diff": np.full(n, 5.0),
         "source_index": np.arange(n),
     } | {f"pair_{k}": v for k, v in pair.items()}
@@ -110,6 +112,14 @@ def test_a_saturated_backdrop_is_not_over_exposure():
     clipped[20], detail[20] = 0.95, 0.03
     sel = select_frames(tables(np.ones(n), clipped=clipped, detail=detail), SelectionParams())
     assert sel.reason[20] == CLIPPED and (sel.reason == CLIPPED).sum() == 1
+
+
+def test_frames_without_corners_are_blank():
+    # A wall seen from close by: textured-looking (detail 12 %) but 5 corners (Himax test_10).
+    corners = np.full(30, 200.0)
+    corners[25:] = 5.0
+    sel = select_frames(tables(np.ones(30), corners=corners), SelectionParams())
+    assert (sel.reason[25:] == BLANK).all() and sel.reason[24] != BLANK
 
 
 def test_hovering_is_thinned_but_covered():
