@@ -6,6 +6,7 @@ it for the terminal. docs/sfm.md explains each field.
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import numpy as np
@@ -72,11 +73,38 @@ def format_report(report: dict[str, Any]) -> str:
     cam = report.get("camera")
     if cam:
         dist = f" distortion {cam['distortion']}" if cam["distortion"] else ""
-        fixed = "fixed" if cam["fixed"] else "estimated"
+        how = cam.get("mode", "fixed" if cam["fixed"] else "estimated")
+        src = f", from {cam['source']}" if cam.get("source", "none") != "none" else ""
         lines.append(
-            f"  camera {cam['model']} ({fixed}) fx={cam['fx']:.2f} fy={cam['fy']:.2f} "
+            f"  camera {cam['model']} ({how}{src}) fx={cam['fx']:.2f} fy={cam['fy']:.2f} "
             f"cx={cam['cx']:.2f} cy={cam['cy']:.2f}{dist}"
         )
+    init = (report.get("init_pair") or {}).get("chosen")
+    if init:
+        lines.append(
+            f"  initial pair {init['frames'][0]} + {init['frames'][1]}: {init['inliers']} inliers, "
+            f"triangulation angle {init['tri_angle_deg']:.1f} deg"
+        )
+    attempts = report.get("attempts") or []
+    if len(attempts) > 1:
+        tried = "; ".join(
+            f"{' + '.join(a['remedies']) or 'first'}: {a['registered']} frames" for a in attempts
+        )
+        lines.append(f"  attempts: {tried}; kept: {report.get('remedy') or 'the first'}")
+    pri = report.get("priors")
+    if pri and "error" in pri:
+        lines.append(f"  priors: {pri['error']}")
+    elif pri:
+        lines.append(
+            f"  priors: metres and z up from {pri['used']} frames ({pri['method']}), "
+            f"{pri['scale_m_per_unit']:.4g} m per SfM unit; recovered vs prior: position "
+            f"{pri['position_median_m']:.3f} m median, rotation "
+            f"{pri['rotation_median_deg']:.2f} deg median"
+        )
+        if pri.get("fallback_frames"):
+            lines.append(
+                f"  {len(pri['fallback_frames'])} unregistered frame(s) kept with their prior"
+            )
     models = report.get("models")
     if models:
         found = ", ".join(f"{k} {v['frames']} ({v['reproj']:.2f} px)" for k, v in models.items())
@@ -87,7 +115,7 @@ def format_report(report: dict[str, Any]) -> str:
         lines.append(f"  dropped frames {span} ({r['count']}) at the {r['where']}")
     reasons: dict[str, int] = {}
     for d in report.get("dropped", []):
-        key = d["reason"].split(" (")[0]
+        key = re.sub(r"\d+", "K", d["reason"].split(" (")[0])
         reasons[key] = reasons.get(key, 0) + 1
     if reasons:
         lines.append("  why: " + ", ".join(f"{k}: {v}" for k, v in reasons.items()))

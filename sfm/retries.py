@@ -4,7 +4,8 @@ The remedies, in order (each only when it applies): exhaustive matching (instead
 contrast normalisation before SIFT (CLAHE, :mod:`dronecap.capture.contrast`), more features
 (twice the keypoints, half the contrast threshold), and the known camera kept fixed (when
 ``--camera estimate`` was asked although frames.h5 has a calibrated camera). Each attempt runs on
-top of the best settings so far: a remedy that helped stays, one that did not is dropped. The
+top of the best settings so far: a remedy that registered more frames stays, one that did not
+is dropped. The
 loop stops as soon as ``opts.retry_below`` of the frames register, or when ``opts.retry_budget``
 seconds have gone on retries (an attempt already started finishes). The report's ``attempts``
 lists every attempt (remedies in effect, frames registered, seconds) and ``remedy`` names the
@@ -40,12 +41,6 @@ class Attempt:
         """Frames in the chosen model (0 when none)."""
         rec = self.result.reconstruction
         return 0 if rec is None else int(rec.num_reg_images())
-
-    def score(self) -> tuple[int, float]:
-        """Ordering key: more frames first, then lower reprojection error."""
-        rec = self.result.reconstruction
-        err = float(rec.compute_mean_reprojection_error()) if rec is not None else np.inf
-        return self.registered, -err
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able summary for the report."""
@@ -115,6 +110,6 @@ def reconstruct_with_retries(
         res = reconstruct(images, sfm_dir / f"work_retry{k}", o, p, progress)
         att = Attempt([*best.remedies, name], res, time.perf_counter() - t)
         attempts.append(att)
-        if att.score() > best.score():
+        if att.registered > best.registered:  # a remedy "worked" when more frames register
             best, best_opts, best_plan = att, o, p
     return best, attempts
