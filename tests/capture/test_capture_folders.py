@@ -7,7 +7,8 @@ import json
 import cv2
 import numpy as np
 
-from dronecap.capture.selection import REASONS
+from dronecap.capture.ingest import extra_to_tables
+from dronecap.capture.selection import REASONS, SelectionParams, select_frames
 from dronecap.cli import main
 from dronecap.datasets import open_dataset
 from tests.capture.conftest import pan, texture, white_orbit_frames, write_video
@@ -35,6 +36,11 @@ def test_torn_upside_down_and_repeated_frames_are_named(tmp_path, capsys):
     assert REASONS[reason[22]] == "frozen"
     assert ds.attrs["defects"] == {"torn": [8], "upside_down": [15], "frozen": [22]}
     assert ((reason >= 2) & (reason != REASONS.index("redundant"))).sum() == 3
+    # The stored tables replay to the same decision, defects included.
+    stored = ds.provenance["params"]["selection"]
+    again = select_frames(extra_to_tables(ds.extra), SelectionParams(**stored))
+    np.testing.assert_array_equal(again.keep, ds.extra["keep"].astype(bool))
+    np.testing.assert_array_equal(again.reason, reason)
 
 
 def test_raw_bayer_frames_are_demosaiced(tmp_path, capsys):
