@@ -1,9 +1,11 @@
-"""``dronecap ingest``: flight video (or image folder) -> 160x160 gray selected frames -> frames.h5.
+"""``dronecap ingest``: flight video or drone capture folder -> 160x160 gray selected frames.h5.
 
-``dronecap ingest flight.mp4`` decodes, scores and selects, and writes ``frames.h5`` in the
-workspace. ``dronecap ingest --replay frames.h5 --min-motion 12`` re-runs only the selection on
-the score tables stored in the file (no decoding) and prints what would change; with ``-o`` it
-writes the re-selected frames when all of them are stored.
+``dronecap ingest flight.mp4`` (or a folder of frames, e.g. a NanoCockpit or PULP-Dronet capture
+with its telemetry CSV) decodes, checks for stream defects, scores, tracks features and selects,
+and writes ``frames.h5`` in the workspace (with pose priors when the telemetry has poses).
+``dronecap ingest --replay frames.h5 --min-parallax 1.2`` re-runs only the selection on the
+tables stored in the file (no decoding) and prints what would change; with ``-o`` it writes the
+re-selected frames when all of them are stored.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import math
 import sys
 from pathlib import Path
 
-HELP = "decode a flight video to 160x160 gray, select frames -> frames.h5"
+HELP = "flight video or drone capture folder (+ telemetry) -> 160x160 gray selected frames.h5"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
