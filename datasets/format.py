@@ -402,6 +402,8 @@ def read_header(path: str | Path) -> dict[str, Any]:
         raise DatasetError("no such file", path)
     if path.is_dir():
         raise DatasetError("is a folder, expected a dataset file", path)
+    if not path.is_file():  # a FIFO or device would block or stream forever
+        raise DatasetError("is not a regular file", path)
     try:
         with h5py.File(path, "r") as f:
             attrs = dict(f.attrs)

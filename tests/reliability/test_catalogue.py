@@ -50,6 +50,7 @@ SPLIT: list[Case] = [
     ("missing input", lambda f, t: [str(t / "nope.h5")], "no such file"),
     ("input is a folder", lambda f, t: [str(t)], "is a folder"),
     ("input is text", lambda f, t: [str(_text_file(t))], "not a readable HDF5 file"),
+    ("input is a device", lambda f, t: ["/dev/zero"], "is not a regular file"),
     ("frames, no poses", lambda f, t: [str(_frames_only(f, t))], "expected one of"),
     ("one frame", lambda f, t: [str(_one_frame(f, t))], "leaves no train frame"),
     ("all test", lambda f, t: [str(_with_split(f, t, [2]))], "leaves no train frame"),
