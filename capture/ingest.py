@@ -206,6 +206,12 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
         listed = ", ".join(str(tables["name"][i]) for i in at[:DEFECTS_LISTED])
         more = f" and {len(at) - DEFECTS_LISTED} more" if len(at) > DEFECTS_LISTED else ""
         warnings.append(f"{len(at)} {name.replace('_', '-')} frames dropped: {listed}{more}")
+    if telemetry is not None and not telemetry.prior_valid.all():
+        missing = int((~telemetry.prior_valid).sum())
+        warnings.append(
+            f"{missing} of {n} frames have no telemetry pose (no row for them, or none within "
+            f"20 ms): they get no prior (prior_valid False)"
+        )
     if telemetry is not None and telemetry.dropped:
         lost = telemetry.dropped
         listed = ", ".join(str(f) for f in lost[:DEFECTS_LISTED])

@@ -92,7 +92,7 @@ def test_priors_follow_the_contract_axes(tmp_path):
     np.testing.assert_allclose(moved[0, :3, 3], [0.0, 0.05, 0.0], atol=1e-12)
 
 
-def test_pulp_dronet_frames_match_the_nearest_state_row(tmp_path):
+def test_pulp_dronet_frames_match_the_nearest_state_row(tmp_path, capsys):
     folder = tmp_path / "pulp"
     (folder / "images").mkdir(parents=True)
     ticks = [1_000_000 + k * PERIOD_US for k in range(8)] + [2_000_000]  # last: no state near
@@ -109,6 +109,8 @@ def test_pulp_dronet_frames_match_the_nearest_state_row(tmp_path):
     assert t.prior_valid.tolist() == [True] * 8 + [False]
     nearest = state_t[np.abs(state_t[None, :] - np.array(ticks[:8])[:, None]).argmin(1)]
     np.testing.assert_allclose(t.prior_c2w[:8, 0, 3], nearest * 1e-6)
+    assert main(["ingest", str(folder), "--workdir", str(tmp_path)]) == 0
+    assert "1 of 9 frames have no telemetry pose" in capsys.readouterr().err
     # The 1 s gap before the last frame is 29 lost frames at the median 33.3 ms period.
     assert len(t.dropped) == round((2_000_000 - ticks[7]) / PERIOD_US) - 1
 
