@@ -3,9 +3,10 @@
 The hash grid (``csrc/hashgrid.cpp``) and the ray marcher (``csrc/march.cpp``) are compiled
 on first use with ``torch.utils.cpp_extension`` and cached on disk under
 ``$XDG_CACHE_HOME/dronecap/torch_extensions/<name>-<key>`` (``~/.cache`` by default), where
-the key hashes the torch version, the Python version, the kernel's C++ source and the CPU's
-instruction-set flags (builds use ``-march=native``): two installs on one machine, or a
-shared home on two CPUs, never load or rebuild each other's build.
+the key hashes the torch version, the Python version, where torch and the source are installed,
+the kernel's C++ source and the CPU's instruction-set flags (builds use ``-march=native``): two
+installs or checkouts on one machine, or a shared home on two CPUs, never load or rebuild each
+other's build.
 
 Fallback rule (:func:`kernel`), the same for every kernel: backend ``"torch"`` or
 ``"compile"`` -> the PyTorch reference; ``"cpp"`` -> the kernel or an error; ``"auto"`` -> the
@@ -58,12 +59,16 @@ def _cpu_flags() -> str:
 
 def cache_key(name: str) -> str:
     """12 hex digits naming a build of kernel ``name``: sha256 of the torch version, Python
-    version, the kernel's C++ source and flags, and the CPU flags."""
+    version, the install's torch and source paths, the kernel's C++ source and flags, and the
+    CPU flags."""
     import torch
 
     source, flags = KERNELS[name]
     h = hashlib.sha256()
-    for part in (torch.__version__, sys.version, " ".join(flags), _cpu_flags()):
+    # the install's own paths too: torch writes them (torch headers, the source file) into the
+    # build commands, so two checkouts sharing a cache folder would rebuild each other's
+    where = (str(Path(torch.__file__).resolve().parent), str((CSRC / source).resolve()))
+    for part in (torch.__version__, sys.version, *where, " ".join(flags), _cpu_flags()):
         h.update(part.encode() + b"\0")
     h.update((CSRC / source).read_bytes())
     return h.hexdigest()[:12]

@@ -202,8 +202,9 @@ def test_auto_falls_back_to_reference_when_the_kernel_cannot_build(monkeypatch, 
 
 
 def test_kernel_cache_key_follows_torch_python_and_source(monkeypatch, tmp_path):
-    """The build folder changes with the torch version, the Python version and the C++ source,
-    so two installs on one machine never share (and rebuild) each other's kernel."""
+    """The build folder changes with the torch version, the Python version, the checkout and
+    the C++ source, so two installs on one machine never share (and rebuild) each other's
+    kernel."""
     import sys
 
     from dronecap.nerf import backend
@@ -217,11 +218,15 @@ def test_kernel_cache_key_follows_torch_python_and_source(monkeypatch, tmp_path)
     monkeypatch.setattr(sys, "version", "2.7.18 (other)")
     other_python = backend.cache_key("hashgrid")
     monkeypatch.undo()
-    src = tmp_path / "hashgrid.cpp"
-    src.write_bytes((backend.CSRC / "hashgrid.cpp").read_bytes() + b"// edited\n")
-    monkeypatch.setattr(backend, "CSRC", tmp_path)
+    copy = tmp_path / "checkout"  # the same source in another checkout: its own build
+    copy.mkdir()
+    (copy / "hashgrid.cpp").write_bytes((backend.CSRC / "hashgrid.cpp").read_bytes())
+    monkeypatch.setattr(backend, "CSRC", copy)
+    other_checkout = backend.cache_key("hashgrid")
+    (copy / "hashgrid.cpp").write_bytes((copy / "hashgrid.cpp").read_bytes() + b"// edited\n")
     other_source = backend.cache_key("hashgrid")
-    assert len({base, other_torch, other_python, other_source}) == 4
+    keys = {base, other_torch, other_python, other_checkout, other_source}
+    assert len(keys) == 5
     assert backend.build_dir("hashgrid").name == f"hashgrid-{other_source}"
 
 
