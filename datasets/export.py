@@ -22,7 +22,9 @@ The folder holds (everything in the dataset's own scene frame, so the files agre
   centred pinhole, which is what that layout can express);
 - ``sparse_pc.ply``: the sparse points with their colours in the exported frame, and
   ``colmap/sparse/0`` (binary) and ``colmap/text`` (text): the COLMAP model of the exported
-  images and poses (:mod:`dronecap.datasets.export_colmap`).
+  images and poses (:mod:`dronecap.datasets.export_colmap`);
+- ``trajectory_tum.txt``: the camera-to-world poses (OpenCV axes) as a TUM trajectory, stamped
+  with the capture time (else the source frame index), for evo-style trajectory tools.
 
 A camera neither tool can express (FULL_OPENCV with rational terms k4..k6) is refused; one that
 only instant-ngp cannot express (non-zero k3) gets no per-split files, and the result says so.
@@ -39,12 +41,14 @@ import numpy as np
 
 from dronecap.datasets.blender import opencv_to_opengl
 from dronecap.datasets.format import SPLITS, Dataset, Intrinsics, open_dataset
+from dronecap.datasets.trajectory import write_tum
 from dronecap.errors import InputError
 from dronecap.files import atomic_output
 
 PLY_NAME = "sparse_pc.ply"  # nerfstudio's own name for the sparse cloud
 COLMAP_BINARY = "colmap/sparse/0"
 COLMAP_TEXT = "colmap/text"
+TRAJECTORY = "trajectory_tum.txt"
 
 
 @dataclass
@@ -204,6 +208,7 @@ def export_transforms(
         for sub, write in ((COLMAP_BINARY, rec.write_binary), (COLMAP_TEXT, rec.write_text)):
             (tmp / sub).mkdir(parents=True)
             write(str(tmp / sub))
+        write_tum(tmp / TRAJECTORY, _times(ds), ds.poses)
     return ExportResult(
         out_dir=out_dir,
         frames=ds.n,
@@ -213,6 +218,13 @@ def export_transforms(
         observations=int(rec.compute_num_observations()),
         notes=notes,
     )
+
+
+def _times(ds: Dataset) -> np.ndarray:
+    """Per-frame TUM timestamps: the capture time, else the source index, else the position."""
+    if ds.timestamps is not None:
+        return ds.timestamps
+    return np.arange(ds.n, dtype=float) if ds.source_index is None else ds.source_index * 1.0
 
 
 def _bgr(ds: Dataset, i: int) -> np.ndarray:

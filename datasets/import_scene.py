@@ -11,8 +11,9 @@ Both ``import-transforms`` and ``import-colmap`` end here:
   new width / old width, fy, cy by new height / old height; distortion unchanged);
 - bounds as for a captured flight (:mod:`dronecap.sfm.normalize`): the poses are oriented,
   centred and scaled into [-1, 1]^3 from the sparse points and camera centres, the AABB is the
-  robust box, near/far come from the points each view observes — unless the source declares its
-  own scene box (``keep_frame``), which is then kept with its poses unchanged.
+  robust box (or, for an object capture with alpha and a pinhole camera, carved from the masks as
+  import-blender does), near/far come from the points each view observes — unless the source
+  declares its own scene box, which is then kept with its poses unchanged.
 """
 
 from __future__ import annotations
@@ -116,6 +117,7 @@ def scene_bounds(
     points: np.ndarray,
     seen: list[np.ndarray],
     keep_aabb: np.ndarray | None = None,
+    masks: tuple[np.ndarray, Intrinsics, np.ndarray] | None = None,
 ) -> Bounds:
     """Normalise and bound a posed scene as SfM does for a captured flight.
 
@@ -125,6 +127,9 @@ def scene_bounds(
         seen: for each view, the row numbers of the points it observes.
         keep_aabb: a scene box declared by the source: poses stay in the source frame and
             this is the AABB.
+        masks: (alpha uint8 [M, H, W], a pinhole camera, the M view indices) of an object
+            capture's training views: after the normalisation the AABB is carved from them as
+            import-blender does (:func:`bounds.carve_aabb`) when carving bounds the object.
 
     Raises:
         InputError: cameras whose up vectors cancel out (no up direction to orient by).
@@ -150,9 +155,17 @@ def scene_bounds(
         raise InputError(f"cannot orient the scene: {err}") from None
     poses = apply_to_poses(norm.matrix, c2w)
     pts = apply_to_points(norm.matrix, points)
-    nf = near_far(poses, norm.aabb, [pts[s] for s in seen])
+    aabb = norm.aabb
     how = "sparse points and cameras" if len(points) else "camera centres (no sparse points)"
-    return Bounds(poses, pts, norm.inliers, norm.aabb, nf, norm.matrix, how)
+    if masks is not None:
+        from dronecap.datasets.bounds import carve_aabb
+
+        alpha, k, views = masks
+        carved = carve_aabb(alpha, poses[views], k)
+        if carved is not None:
+            aabb, how = carved, "alpha carving"
+    nf = near_far(poses, aabb, [pts[s] for s in seen])
+    return Bounds(poses, pts, norm.inliers, aabb, nf, norm.matrix, how)
 
 
 def points_extra(points: np.ndarray, colors: np.ndarray | None) -> dict[str, np.ndarray]:

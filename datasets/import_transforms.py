@@ -18,8 +18,9 @@ one ``.json`` file. What is read, with the tools' own meanings:
   box): when present the poses keep their frame and this is the AABB — so a dronecap export
   imports back unchanged; ``applied_transform`` is then kept as the dataset's normalisation.
 
-Bounds otherwise as for a captured flight (:mod:`dronecap.datasets.import_scene`). Without any
-split the frames get the every-8th test split of ``dronecap split``.
+Bounds otherwise as for a captured flight (:mod:`dronecap.datasets.import_scene`), carved from
+the train views' alpha for an object capture with a pinhole camera. Without any split the frames
+get the every-8th test split of ``dronecap split``.
 """
 
 from __future__ import annotations
@@ -185,7 +186,11 @@ def import_transforms(
     top = metas[first_json]
     points, colors = _ply_points(top, first_json)
     declared = _declared_box(top, first_json)
-    b = scene_bounds(c2w, points, visible_points(c2w, k, points), declared)
+    masks = None
+    if imgs.alpha is not None and k.is_pinhole:  # an object capture: carve as import-blender
+        views = np.flatnonzero(split == SPLITS["train"])
+        masks = (imgs.alpha[views], k, views)
+    b = scene_bounds(c2w, points, visible_points(c2w, k, points), declared, masks)
     norm = b.normalization
     if declared is not None and "applied_transform" in top:
         norm = np.vstack([np.asarray(top["applied_transform"], float), [0, 0, 0, 1]])

@@ -14,6 +14,7 @@ from dronecap.cli import main
 from dronecap.datasets.blender import import_blender, opengl_to_opencv
 from dronecap.datasets.export import export_transforms
 from dronecap.datasets.format import Dataset, Intrinsics, open_dataset, write_dataset
+from dronecap.datasets.trajectory import read_tum
 from dronecap.errors import InputError
 
 from .interop import lego_colmap_model, nerfstudio_rules, ngp_lens, ngp_rules
@@ -54,6 +55,9 @@ def test_pose_round_trip_opencv_opengl_opencv(tmp_path: Path) -> None:
     np.testing.assert_array_equal(gl[:, :3, 0], ds.poses[:, :3, 0])
     np.testing.assert_array_equal(gl[:, :3, 1:3], -ds.poses[:, :3, 1:3])
     np.testing.assert_allclose(opengl_to_opencv(gl), ds.poses, atol=1e-15)
+    t, tum = read_tum(out / "trajectory_tum.txt")  # the same poses as a TUM trajectory
+    np.testing.assert_allclose(tum, ds.poses, atol=1e-8)
+    np.testing.assert_array_equal(t, np.arange(ds.n))
     k = ds.intrinsics
     assert [meta[key] for key in ("fl_x", "fl_y", "cx", "cy", "w", "h")] == [
         k.fx,

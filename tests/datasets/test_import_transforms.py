@@ -187,3 +187,25 @@ def test_cli_refusals(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["import-transforms", str(tmp_path), "--size", "2"]) == 1
     assert "--size" in capsys.readouterr().err
     assert not (tmp_path / "dataset.h5").exists()
+
+
+def test_object_capture_without_a_scene_box_is_carved(lego_h5: Path, tmp_path: Path) -> None:
+    """A foreign nerfstudio object capture (no ``aabb``, RGBA, pinhole): normalised like a
+    flight, then its AABB carved from the train masks as import-blender does."""
+    out = export_transforms(lego_h5, tmp_path / "x").out_dir
+    meta = json.loads((out / "transforms.json").read_text())
+    for key in ("aabb", "aabb_scale", "applied_transform"):
+        meta.pop(key)
+    (out / "transforms.json").write_text(json.dumps(meta))
+    ds = open_dataset(import_transforms(out, tmp_path / "d.h5", progress=False))
+    lego = open_dataset(lego_h5)
+    assert ds.attrs["bounds_from"] == "alpha carving"
+    # inside the box of import-blender's AABB moved into the new frame (normalisation rotates
+    # it about the vertical, so that box is looser), and far smaller than the cameras' box
+    corners = np.stack(np.meshgrid(*lego.aabb.T, indexing="ij"), -1).reshape(8, 3)
+    moved = corners @ ds.normalization[:3, :3].T + ds.normalization[:3, 3]
+    pad = 0.05 * (moved.max(0) - moved.min(0))
+    assert (ds.aabb[0] >= moved.min(0) - pad).all() and (ds.aabb[1] <= moved.max(0) + pad).all()
+    assert np.prod(ds.aabb[1] - ds.aabb[0]) < 0.2 * np.prod(np.ptp(ds.poses[:, :3, 3], axis=0))
+    c = ds.poses[:, :3, 3]
+    assert not ((c > ds.aabb[0]) & (c < ds.aabb[1])).all(1).any()  # every camera outside
