@@ -4,10 +4,11 @@
 frame with pyramidal Lucas-Kanade on contrast-normalised frames (CLAHE,
 :func:`dronecap.capture.contrast.normalize_contrast`, the same images SfM extracts features
 from), drops tracks that fail a forward-backward check, and tops the set up with new corners
-away from the live ones. Every track has an id; a frame's tracks are the ids alive in it.
+away from the live ones.
 
 For every frame ``j`` and every earlier frame ``i = j - d`` (``1 <= d <= window``) it measures,
-from the tracks the two frames share:
+from the tracks the two frames share (a track is never revived, so these are the current
+frame's tracks that already existed in frame ``i``):
 
 - ``survival``: shared tracks / tracks of frame ``i`` (1: nothing lost; low: the view changed
   so much that the two frames overlap little);
@@ -26,8 +27,6 @@ defective) are skipped: tracks continue from the last good frame.
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 
 from dronecap.capture.contrast import normalize_contrast
@@ -42,45 +41,52 @@ PAIR_NAMES = ("pair_survival", "pair_motion", "pair_parallax")
 
 
 class FeatureTracker:
-    """KLT tracks and pair measures; call :meth:`update` once per decoded frame, in order."""
+    """KLT tracks and pair measures; call :meth:`update` once per decoded frame, in order.
+
+    A track is never revived, so the tracks the current frame shares with an earlier one are
+    the live tracks that existed then: each live track carries its positions in the previous
+    ``window`` decoded frames (NaN before it was found, or in a skipped frame).
+    """
 
     def __init__(self, window: int = WINDOW, max_tracks: int = MAX_TRACKS) -> None:
         self.window = int(window)
         self.max_tracks = int(max_tracks)
         self._prev: np.ndarray | None = None  # last good frame (contrast-normalised)
-        self._pts_next = np.zeros((0, 2), np.float32)  # tracked positions in the new frame
-        self._ids = np.zeros(0, np.int64)  # track ids alive in the last good frame
-        self._pts = np.zeros((0, 2), np.float32)  # their positions
-        self._next_id = 0
-        self._history: deque[tuple[np.ndarray, np.ndarray] | None] = deque(maxlen=self.window)
+        self._pts = np.zeros((0, 2), np.float32)  # live tracks: position in the last good frame
+        self._past = np.full((0, self.window, 2), np.nan, np.float32)  # [S, W, 2], recent first
+        self._counts = np.full(self.window, np.nan)  # tracks alive in each past frame
         self.rows: list[np.ndarray] = []  # per frame: float32 [3, window]
 
     def update(self, gray: np.ndarray | None) -> int:
         """Track into ``gray`` (uint8 [H, W]; None: skip this frame). Returns the live tracks."""
-        row = np.full((len(PAIR_NAMES), self.window), np.nan, np.float32)
         if gray is None:
-            self.rows.append(row)
-            self._history.appendleft(None)
+            self.rows.append(np.full((len(PAIR_NAMES), self.window), np.nan, np.float32))
+            self._shift(None)
             return 0
         img = normalize_contrast(gray)
         if self._prev is not None and len(self._pts):
-            ok = self._track(img)
-            self._ids, self._pts = self._ids[ok], self._pts_next[ok]
+            ok, moved = self._track(img)
+            self._pts, self._past = moved[ok], self._past[ok]
         self._top_up(img)
-        measures = pair_measures(list(self._history), (self._ids, self._pts), max(gray.shape))
-        row[:, : measures.shape[1]] = measures
-        self.rows.append(row)
-        self._history.appendleft((self._ids.copy(), self._pts.copy()))
+        measures = pair_measures(self._past, self._counts, self._pts, max(gray.shape))
+        self.rows.append(measures.astype(np.float32))
+        self._shift(self._pts)
         self._prev = img
-        return len(self._ids)
+        return len(self._pts)
 
     def tables(self) -> dict[str, np.ndarray]:
         """The pair tables, float32 [N, window] each, named as :data:`PAIR_NAMES`."""
         stack = np.stack(self.rows) if self.rows else np.zeros((0, 3, self.window), np.float32)
         return {name: stack[:, k] for k, name in enumerate(PAIR_NAMES)}
 
-    def _track(self, img: np.ndarray) -> np.ndarray:
-        """LK from the previous good frame, checked backwards; sets ``_pts_next``; bool mask."""
+    def _shift(self, pts: np.ndarray | None) -> None:
+        """The frame just processed (None: skipped) becomes the most recent past frame."""
+        now = np.full((len(self._past), 1, 2), np.nan, np.float32) if pts is None else pts[:, None]
+        self._past = np.concatenate([now, self._past[:, :-1]], axis=1)
+        self._counts = np.r_[np.nan if pts is None else len(pts), self._counts[:-1]]
+
+    def _track(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """LK from the previous good frame, checked backwards: (kept bool [S], moved [S, 2])."""
         import cv2
 
         lk = {"winSize": (9, 9), "maxLevel": 2}
@@ -91,14 +97,13 @@ class FeatureTracker:
         h, w = img.shape
         p1 = p1.reshape(-1, 2)
         inside = (p1[:, 0] >= 0) & (p1[:, 1] >= 0) & (p1[:, 0] < w) & (p1[:, 1] < h)
-        self._pts_next = p1
-        return (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < FB_ERROR) & inside
+        return (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < FB_ERROR) & inside, p1
 
     def _top_up(self, img: np.ndarray) -> None:
         """Add corners away from the live tracks until ``max_tracks`` are alive."""
         import cv2
 
-        need = self.max_tracks - len(self._ids)
+        need = self.max_tracks - len(self._pts)
         if need < self.max_tracks // 4:
             return
         mask = np.full(img.shape, 255, np.uint8)
@@ -110,53 +115,38 @@ class FeatureTracker:
         if new is None:
             return
         new = new.reshape(-1, 2).astype(np.float32)
-        ids = np.arange(self._next_id, self._next_id + len(new), dtype=np.int64)
-        self._next_id += len(new)
-        self._ids = np.concatenate([self._ids, ids])
         self._pts = np.concatenate([self._pts, new])
+        unseen = np.full((len(new), self.window, 2), np.nan, np.float32)
+        self._past = np.concatenate([self._past, unseen])
 
 
 def pair_measures(
-    history: list[tuple[np.ndarray, np.ndarray] | None],
-    current: tuple[np.ndarray, np.ndarray],
-    size: float,
+    past: np.ndarray, counts: np.ndarray, points: np.ndarray, size: float
 ) -> np.ndarray:
     """Survival, motion (px) and parallax (px) from each earlier frame to the current one.
 
     Args:
-        history: earlier frames, most recent first, each (ids int64 [K], points float32 [K, 2])
-            with ids in increasing order (tracks are only appended), or None (skipped frame).
-        current: the current frame, same form.
+        past: float [S, W, 2] positions of the current frame's S tracks in the W earlier frames,
+            most recent first; NaN where a track did not exist yet (or the frame was skipped).
+        counts: float [W] tracks alive in each earlier frame (NaN: skipped or none).
+        points: float [S, 2] the tracks' positions in the current frame.
         size: the frame's larger side in pixels (normalises the homography fit).
 
     Returns:
-        float64 [3, len(history)]: rows survival, motion, parallax (see the module docstring);
-        NaN where unknown (a skipped frame; fewer than MIN_SHARED shared tracks for motion and
-        parallax).
+        float64 [3, W]: rows survival, motion, parallax (see the module docstring); NaN where
+        unknown (a skipped frame; fewer than MIN_SHARED shared tracks for motion and parallax).
     """
-    ids_c, pts_c = current
-    w, s = len(history), len(ids_c)
-    src = np.zeros((w, s, 2))
-    shared = np.zeros((w, s), bool)
-    tracks = np.full(w, np.nan)
-    for d, past in enumerate(history):
-        if past is None:
-            continue
-        ids_h, pts_h = past
-        tracks[d] = len(ids_h)
-        if len(ids_h) == 0 or s == 0:
-            continue
-        at = np.minimum(np.searchsorted(ids_h, ids_c), len(ids_h) - 1)
-        shared[d] = ids_h[at] == ids_c
-        src[d, shared[d]] = pts_h[at[shared[d]]]
+    w, s = past.shape[1], past.shape[0]
+    shared = np.isfinite(past[:, :, 0]).T  # [W, S]
+    src = np.nan_to_num(past.transpose(1, 0, 2).astype(float))
     out = np.full((3, w), np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
-        out[0] = shared.sum(1) / tracks
+        out[0] = shared.sum(1) / counts
     enough = shared.sum(1) >= MIN_SHARED
     if not enough.any():
         return out
     src, shared = src[enough], shared[enough]
-    dst = np.broadcast_to(pts_c.astype(float), src.shape)
+    dst = np.broadcast_to(points.astype(float), src.shape)
     out[1, enough] = _masked_median(np.linalg.norm(dst - src, axis=2), shared)
     # Homography by normalised DLT, refitted once without the tracks far off the first fit.
     scale = 2.0 / size

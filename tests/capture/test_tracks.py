@@ -10,12 +10,15 @@ from tests.capture.conftest import pan
 
 RNG = np.random.default_rng(0)
 PTS = RNG.uniform(10, 150, (100, 2))
-IDS = np.arange(100)
 
 
 def measures(dst: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+    """Pair measures from a frame with the 100 tracks PTS to one where ``keep`` of them
+    survived (at ``dst``) and new ones (at random places) replaced the others."""
     keep = np.ones(100, bool) if keep is None else keep
-    return pair_measures([(IDS, PTS)], (IDS[keep], dst[keep]), 160)[:, 0]
+    past = np.where(keep[:, None], PTS, np.nan)[:, None, :]  # the replacements did not exist
+    points = np.where(keep[:, None], dst, RNG.uniform(10, 150, (100, 2)))
+    return pair_measures(past, np.array([100.0]), points, 160)[:, 0]
 
 
 def test_a_homography_leaves_no_parallax():
