@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -189,39 +190,13 @@ def read_table(path: Path, layout: Layout) -> tuple[dict[str, np.ndarray], np.nd
         fh = open(path, newline="", encoding="utf-8-sig")
     except OSError as err:
         raise InputError(f"cannot read telemetry ({err.strerror})", path) from None
-    with fh:
-        reader = csv.reader(fh)
-        header = [h.strip() for h in next(reader, [])]
-        missing = [c for c in layout.columns.values() if c not in header]
-        if missing:
-            raise InputError(
-                f"telemetry ({layout.name}) lacks column(s) {', '.join(missing)}; "
-                f"it has {', '.join(header) or 'no header'}",
-                path,
-            )
-        at = {k: header.index(c) for k, c in layout.columns.items()}
-        values: dict[str, list[object]] = {k: [] for k in at}
-        lines: list[int] = []
-        for line, row in enumerate(reader, start=2):
-            if not any(cell.strip() for cell in row):
-                continue
-            if len(row) < len(header):
-                raise InputError(f"line {line}: {len(row)} values, header has {len(header)}", path)
-            for k, i in at.items():
-                cell = row[i].strip()
-                if k == "file":
-                    values[k].append(cell)
-                    continue
-                try:
-                    v = float(cell)
-                except ValueError:
-                    v = math.nan
-                if not math.isfinite(v):
-                    raise InputError(
-                        f"line {line}: {layout.columns[k]} = {cell!r} is not a finite number", path
-                    )
-                values[k].append(v)
-            lines.append(line)
+    try:
+        with fh:
+            reader = csv.reader(fh)
+            header = [h.strip() for h in next(reader, [])]
+            values, lines = _parse_rows(reader, header, layout, path)
+    except (UnicodeDecodeError, csv.Error) as err:
+        raise InputError(f"is not a readable CSV text file ({err})", path) from None
     if not lines:
         raise InputError("telemetry has a header but no rows", path)
     table = {k: np.asarray(v, dtype=object if k == "file" else float) for k, v in values.items()}
@@ -242,6 +217,42 @@ def read_table(path: Path, layout: Layout) -> tuple[dict[str, np.ndarray], np.nd
             r = int(bad[0])
             raise InputError(f"line {line_of[r]}: quaternion has norm {norm[r]:.3f}, not 1", path)
     return table, line_of
+
+
+def _parse_rows(
+    reader: Iterator[list[str]], header: list[str], layout: Layout, path: Path
+) -> tuple[dict[str, list[object]], list[int]]:
+    """The mapped columns of the rows after the header, and each row's file line."""
+    missing = [c for c in layout.columns.values() if c not in header]
+    if missing:
+        raise InputError(
+            f"telemetry ({layout.name}) lacks column(s) {', '.join(missing)}; "
+            f"it has {', '.join(header) or 'no header'}",
+            path,
+        )
+    at = {k: header.index(c) for k, c in layout.columns.items()}
+    values: dict[str, list[object]] = {k: [] for k in at}
+    lines: list[int] = []
+    for line, row in enumerate(reader, start=2):
+        if not any(cell.strip() for cell in row):
+            continue
+        if len(row) < len(header):
+            raise InputError(f"line {line}: {len(row)} values, header has {len(header)}", path)
+        for k, i in at.items():
+            cell = row[i].strip()
+            if k == "file":
+                values[k].append(cell)
+                continue
+            try:
+                v = float(cell)
+            except ValueError:
+                v = math.nan
+            if not math.isfinite(v):
+                msg = f"line {line}: {layout.columns[k]} = {cell!r} is not a finite number"
+                raise InputError(msg, path)
+            values[k].append(v)
+        lines.append(line)
+    return values, lines
 
 
 def camera_poses(

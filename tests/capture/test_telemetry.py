@@ -199,6 +199,8 @@ def test_bad_telemetry_names_the_file_and_line(tmp_path, capsys):
     broken[3] = ",".join(broken[3].split(",")[:-4] + ["0", "0", "0", "0"])
     csv_path.write_text("\n".join([header, *broken]))
     assert "line 5: quaternion" in bad(tmp_path, capsys, str(tmp_path / "cap"))
+    csv_path.write_bytes(header.encode() + b"\n\xff\xfe binary \x00\n")
+    assert "not a readable CSV" in bad(tmp_path, capsys, str(tmp_path / "cap"))
 
 
 def test_bad_frames_and_options(tmp_path, capsys):
