@@ -14,6 +14,10 @@ from dronecap.nerf.trainer import Trainer
 
 from .conftest import FACE_COLOURS, cube_dataset
 
+o3d = pytest.importorskip(
+    "open3d", reason="geometry export writes PLY with open3d (the [sim] extra)"
+)
+
 
 def face_of(x: torch.Tensor) -> torch.Tensor:
     """Index into FACE_COLOURS of the cube face nearest each point (as the cube renderer)."""
@@ -65,8 +69,6 @@ def test_mesh_lies_on_the_cube_with_outward_normals_and_face_colours(cube_model,
         median = np.median(geo.colors[(faces == f) & centre], 0)
         assert np.argmin(np.linalg.norm(FACE_COLOURS - median, axis=1)) == f
     out = write_geometry(geo, tmp_path / "g")
-    import open3d as o3d
-
     mesh = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
     np.testing.assert_allclose(np.asarray(mesh.vertices), v, atol=1e-6)
     assert len(mesh.triangles) == len(geo.faces)
@@ -89,8 +91,6 @@ def test_command_on_a_trained_cube_run(cube_h5, tmp_path, capsys) -> None:
     assert main([*train, "--no-progress", "--threads", "1", "--no-eval"]) == 0
     assert main(["export-geometry", str(run), "--resolution", "24", "--opacity", "0.01"]) == 0
     assert "mesh.ply" in capsys.readouterr().out
-    import open3d as o3d
-
     v = np.asarray(o3d.io.read_triangle_mesh(str(run / "geometry/mesh.ply")).vertices)
     assert len(v) > 0 and (np.abs(v) <= 1 + 1e-6).all()  # inside the cube dataset's AABB
     for bad, message in (
