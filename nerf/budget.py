@@ -24,6 +24,8 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
 REPLAN_FRACTION = 0.05  # re-plan the step count every 5 % of the time budget
 CHECK_FRACTION = 0.05  # a held-out check every 5 % of the planned steps (20 curve points)
 RECENT_STEPS = 200  # step times the plan is made from (the latest ones)
@@ -98,6 +100,18 @@ class BudgetState:
     def from_dict(cls, d: dict) -> BudgetState:
         """Inverse of :meth:`as_dict`."""
         return cls(**d)
+
+
+def held_out_views(split: np.ndarray | None, n: int) -> np.ndarray:
+    """Up to ``n`` frame indices spread over the validation split (split 1), else over the
+    test split (2); empty without a split."""
+    if split is None or n <= 0:
+        return np.zeros(0, np.int64)
+    pool = np.flatnonzero(split == 1)
+    pool = pool if pool.size else np.flatnonzero(split == 2)
+    if pool.size == 0:
+        return pool
+    return np.unique(pool[np.linspace(0, pool.size - 1, min(n, pool.size)).astype(np.int64)])
 
 
 def start(cfg: BudgetConfig, steps: int, step: int = 0, seconds: float = 0.0) -> BudgetState:

@@ -34,6 +34,9 @@ class TrainConfig:
     n_min: int = 16  # coarsest grid resolution (cells per axis)
     n_max: int = 2048  # finest grid resolution; replaced when resolved if auto_n_max
     auto_n_max: bool = False  # resolve n_max to the pixel footprint over the scene (resolve.py)
+    sized: bool = False  # resolve n_max, march_steps, grid_res, log2_hashmap from the scene
+    sized_keep: str = ""  # comma-separated fields the sizing keeps as given (set by the user)
+    budget_mb: float = 21.0  # device memory (GAP9 model, MB) a sized model may use
     # --- MLPs -----------------------------------------------------------------------------
     hidden: int = 64  # width of both MLPs
     density_layers: int = 1  # hidden layers of the density MLP
@@ -92,6 +95,11 @@ PRESETS: dict[str, TrainConfig] = {
     # lego, 10k steps, all 200 test views, 3 seeds: 29.05 +- 0.06 dB vs 27.16 +- 0.07
     # (benchmarks/results/train_accuracy.md has the ablation).
     "tiny-dronerf-sized": _row(8192, 13).replace(auto_n_max=True, march_steps=512, grid_res=64),
+    # The default: the paper's MLPs and batch, n_max, marching step, occupancy grid and table
+    # size resolved from the dataset within budget_mb (nerf/sizing.py), one tile per step on
+    # the CPU (the same gradient as the GAP9's tiles of 1024). lego: see
+    # benchmarks/results/scene_sized.md.
+    "scene-sized": _row(8192, 13).replace(sized=True, tile_samples=8192),
     # A seconds-long configuration for the test suite.
     "test": TrainConfig(
         steps=60,
@@ -113,6 +121,10 @@ for _b, _bname in ((32768, "32k"), (16384, "16k"), (8192, "8k"), (4096, "4k")):
 TABLE2_ROWS: list[str] = ["instant-ngp"] + [
     f"b{b}-t{t}" for b in ("32k", "16k", "8k", "4k") for t in (14, 13, 12, 11)
 ]
+
+
+DEFAULT_PRESET = "scene-sized"
+SIZED_FIELDS = ("n_max", "march_steps", "grid_res", "log2_hashmap")  # what `sized` decides
 
 
 def preset(name: str) -> TrainConfig:
@@ -231,6 +243,7 @@ _RULES: dict[str, tuple[Any, str]] = {
     "eps": (lambda x, c: x > 0, "> 0"),
     "weight_decay": (lambda x, c: x >= 0, ">= 0"),
     "lr_final_ratio": (lambda x, c: x > 0, "> 0"),
+    "budget_mb": (lambda x, c: x > 0, "> 0"),
     "resolution": (lambda x, c: x >= 1, ">= 1"),
     "train_images": (lambda x, c: x >= 0, ">= 0"),
     "channels": (lambda x, c: x >= 1, ">= 1"),
@@ -271,7 +284,7 @@ def add_config_arguments(parser: Any) -> None:
     """Add ``--preset``, ``--set k=v`` and one ``--field-name VALUE`` option per TrainConfig
     field to an argparse parser (options default to "not given")."""
     parser.add_argument(
-        "--preset", default="tiny-dronerf", help=f"named configuration: {', '.join(PRESETS)}"
+        "--preset", default=DEFAULT_PRESET, help=f"named configuration: {', '.join(PRESETS)}"
     )
     parser.add_argument(
         "--set",
@@ -300,4 +313,11 @@ def config_from_args(args: Any) -> TrainConfig:
         text = getattr(args, f"cfg_{f.name}", None)
         if text is not None:
             changes[f.name] = parse_field(f.name, text)
-    return cfg.replace(**changes)
+    cfg = cfg.replace(**changes)
+    if cfg.sized:  # what the user set, the sizing keeps
+        given = {item.split("=", 1)[0].strip().replace("-", "_") for item in args.set} | set(
+            changes
+        )
+        keep = [k for k in cfg.sized_keep.split(",") if k] + sorted(given & set(SIZED_FIELDS))
+        cfg = cfg.replace(sized_keep=",".join(dict.fromkeys(keep)))
+    return cfg

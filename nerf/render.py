@@ -142,3 +142,19 @@ def render_view(
         origins, dirs = camera_rays(pose, camera, uu[a : a + RENDER_RAYS], vv[a : a + RENDER_RAYS])
         out.append(render_rays(vol, origins, dirs, bg, min_transmittance, min_weight))
     return torch.cat(out).reshape(h, w, -1).cpu().numpy().astype(np.float32)
+
+
+def render_preview(
+    vol: Volume,
+    c2w: np.ndarray,
+    camera: Camera,
+    background: tuple[float, ...],
+    scale: float = 0.5,
+) -> np.ndarray:
+    """A quick look at a view: :func:`render_view` through ``camera`` resized by ``scale``
+    (same field of view; half resolution renders a quarter of the rays) -> float32
+    [round(H * scale), round(W * scale), C]."""
+    small = camera.scaled_to(
+        max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+    )
+    return render_view(vol, c2w, small, background)

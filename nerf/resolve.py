@@ -25,6 +25,7 @@ from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
 from .config import TrainConfig, config_from_dict, problems
+from .sizing import MemoryFn, SceneFacts, size_to_scene
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,17 +149,31 @@ def check_config(cfg: TrainConfig) -> None:
         raise InputError("bad configuration: " + "; ".join(bad))
 
 
-def resolve(cfg: TrainConfig, ds: Dataset, dataset_sha256: str | None = None) -> Resolved:
+def resolve(
+    cfg: TrainConfig,
+    ds: Dataset,
+    dataset_sha256: str | None = None,
+    memory_fn: MemoryFn | None = None,
+) -> Resolved:
     """Resolve ``cfg`` against ``ds`` (see the module docstring).
 
+    A ``sized`` config is sized to the scene (:mod:`nerf.sizing`): n_max, marching step,
+    occupancy grid and, when ``memory_fn`` (configuration -> modelled device bytes; the train
+    command passes the GAP9 model's) is given, the table size within ``budget_mb``.
+
     Raises:
-        InputError: an out-of-range field, or a dataset the trainer cannot use (no poses,
-            intrinsics or AABB; a split without train frames).
+        InputError: an out-of-range field, a dataset the trainer cannot use (no poses,
+            intrinsics or AABB; a split without train frames), or no sized model within the
+            memory budget.
     """
     check_config(cfg)
     scene = scene_of(ds)
     h, w = ds.hw
     n_train = int(training_frames(ds).size)
+    sized: dict[str, str] = {}
+    if cfg.sized:
+        data = cfg.replace(channels=ds.channels, resolution=w, train_images=n_train)
+        cfg, sized = _size(data, scene, w, h, n_train, memory_fn)
     if cfg.auto_n_max:
         n_max = max(auto_n_max(scene.aabb, scene.near, scene.focal), cfg.n_min)
         why_n = (
@@ -175,8 +190,27 @@ def resolve(cfg: TrainConfig, ds: Dataset, dataset_sha256: str | None = None) ->
         "resolution": f"the dataset's image width ({w}x{h} px)",
         "train_images": f"frames in {split}",
     }
+    reasons |= sized
     config = cfg.replace(n_max=n_max, channels=ds.channels, resolution=w, train_images=n_train)
     return Resolved(config, scene, reasons, dataset_sha256)
+
+
+def _size(
+    cfg: TrainConfig, scene: Scene, w: int, h: int, n_train: int, memory_fn: MemoryFn | None
+) -> tuple[TrainConfig, dict[str, str]]:
+    """``cfg`` sized to the scene and the reason of each sized field (InputError when no
+    model fits the budget)."""
+    facts = SceneFacts(
+        tuple(float(e) for e in np.asarray(scene.aabb[1]) - np.asarray(scene.aabb[0])),
+        scene.near, scene.focal, w, h, scene.channels, n_train,
+    )  # fmt: skip
+    keep = [k for k in cfg.sized_keep.split(",") if k]
+    budget = cfg.budget_mb * 1e6 if memory_fn is not None else None
+    try:
+        sizing = size_to_scene(cfg, facts, memory_fn, budget, keep)
+    except ValueError as err:
+        raise InputError(f"{err} (raise --budget-mb or set log2_hashmap)") from None
+    return sizing.config, {c.field: c.reason for c in sizing.choices}
 
 
 def legacy_resolved(config: dict[str, Any], scene: dict[str, Any]) -> Resolved:

@@ -233,7 +233,7 @@ def train_run(
     if resume_from is not None:
         info["resumed_from"] = str(Path(resume_from).resolve())
     write_json(out / RUN_INFO, info)
-    if trainer.cfg.sized and progress:
+    if trainer.cfg.sized:
         for k in ("channels", *SIZED_FIELDS):
             print(f"sized: {k} = {getattr(trainer.cfg, k)}: {trainer.resolved.reasons[k]}")
     until = until or BudgetConfig()

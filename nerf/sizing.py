@@ -213,21 +213,3 @@ def size_to_scene(
     if memory_fn is not None:
         out.memory_bytes = float(memory_fn(out.config))
     return out
-
-
-def facts_from_dataset(aabb, near: float, focal: float, ds) -> SceneFacts:
-    """:class:`SceneFacts` of a dataset whose bounds ``aabb`` [2, 3], mean near distance and
-    focal length (pixels) were already read (the trainer's Scene)."""
-    from .trainer import training_frames
-
-    h, w = ds.hw
-    ext = np.asarray(aabb, float)[1] - np.asarray(aabb, float)[0]
-    return SceneFacts(
-        tuple(float(e) for e in ext),
-        float(near),
-        float(focal),
-        int(w),
-        int(h),
-        int(ds.channels),
-        int(training_frames(ds).size),
-    )

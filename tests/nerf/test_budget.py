@@ -92,3 +92,51 @@ def test_state_round_trips():
     cfg = BudgetConfig(time_budget_s=5.0)
     _, _, state = simulate(cfg, 10, lambda s: 0.01)
     assert BudgetState.from_dict(state.as_dict()) == state
+
+
+def test_train_stops_at_a_target_and_records_its_curve(cube_h5, tmp_path, capsys):
+    """A 1 dB target is met by the first held-out check (step 5 of 100: 5 %)."""
+    import json
+
+    from dronecap.cli import main
+
+    run = tmp_path / "run"
+    args = ["train", str(cube_h5), "--preset", "test", "--steps", "100", "--target-psnr", "1"]
+    assert main([*args, "--out", str(run), "--no-progress", "--threads", "1"]) == 0
+    assert "stopped early: target PSNR 1 dB reached" in capsys.readouterr().out
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["steps"] == 5 and [p["step"] for p in m["curve"]] == [5]
+    assert m["until"]["target_psnr"] == 1.0
+    assert (run / "progress" / "step_000005.png").exists()  # the half-resolution preview
+
+
+def test_fixed_steps_record_twenty_checks(cube_h5, tmp_path):
+    import json
+
+    from dronecap.cli import main
+
+    run = tmp_path / "run"
+    args = ["train", str(cube_h5), "--preset", "test", "--steps", "40", "--out", str(run)]
+    assert main([*args, "--no-progress", "--threads", "1"]) == 0
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["steps"] == 40 and [p["step"] for p in m["curve"]] == list(range(2, 40, 2))
+    assert m["until"]["stop_reason"] is None
+
+
+@pytest.mark.parametrize(
+    "option, words",
+    [
+        (["--time-budget", "-5"], "time budget"),
+        (["--time-budget", "soon"], "--time-budget takes a number"),
+        (["--target-psnr", "nan"], "target PSNR"),
+        (["--plateau-db", "-1"], "plateau"),
+    ],
+)
+def test_bad_budget_options_are_one_line(cube_h5, tmp_path, capsys, option, words):
+    from dronecap.cli import main
+
+    out = tmp_path / "r"
+    assert main(["train", str(cube_h5), *option, "--out", str(out), "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and words in err
+    assert not out.exists()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -85,3 +86,48 @@ def test_lego_sized_with_the_gap9_model_fits_21_mb():
     assert s.config.grid_res == 64
     assert mem(s.config) <= 21e6 < mem(s.config.replace(log2_hashmap=s.config.log2_hashmap + 1))
     assert s.memory_bytes == mem(s.config)
+
+
+def test_default_train_is_sized_to_the_cube_and_costed_as_trained(cube_h5, tmp_path, capsys):
+    """`dronecap train` with no preset on the 24 px cube (f = 24 / (2 tan 0.4) = 28.38 px,
+    near 1.5, AABB [-1, 1]^3): footprint 0.05285, n_max ceil(2 / 0.05285) = 38, marching
+    ceil(2 sqrt(3) / 0.05285) = 66 candidates, grid 38 / 4 -> 8 -> clamped to 32, table: the
+    cube's surface 6 * 37.84^2 = 8592 rows -> at most 2^14, which fits 21 MB."""
+    from dronecap.cli import main
+
+    run = tmp_path / "run"
+    args = ["train", str(cube_h5), "--steps", "4", "--batch-samples", "1024", "--out", str(run)]
+    assert main([*args, "--no-progress", "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    for line in ("n_max = 38:", "march_steps = 66:", "grid_res = 32:", "log2_hashmap = 14:"):
+        assert f"sized: {line}" in out, line
+    info = json.loads((run / "run.json").read_text())
+    cost = json.loads((run / "cost.json").read_text())
+    want = {"n_max": 38, "march_steps": 66, "grid_res": 32, "log2_hashmap": 14}
+    assert {k: info["config"][k] for k in want} == want
+    assert {k: cost["config"][k] for k in want} == want
+    assert "pixel footprint" in info["reasons"]["n_max"]
+    assert cost["memory"]["untiled"]["total"] <= 21e6
+    assert main(["cost", str(run)]) == 0  # `dronecap cost RUN_DIR` models the same network
+    assert "/ 14 / 16 x 2" in capsys.readouterr().out  # log2 T / L x F
+    again = json.loads((run / "cost.json").read_text())
+    assert {k: again["config"][k] for k in want} == want
+
+
+def test_user_values_survive_the_default_sizing(cube_h5, tmp_path, capsys):
+    from dronecap.cli import main
+
+    run = tmp_path / "run"
+    args = ["train", str(cube_h5), "--steps", "2", "--batch-samples", "512", "--n-max", "64"]
+    assert main([*args, "--out", str(run), "--no-progress", "--threads", "1"]) == 0
+    assert "sized: n_max = 64: set by the user" in capsys.readouterr().out
+    assert json.loads((run / "run.json").read_text())["config"]["n_max"] == 64
+
+
+def test_budget_too_small_is_one_line(cube_h5, tmp_path, capsys):
+    from dronecap.cli import main
+
+    args = ["train", str(cube_h5), "--budget-mb", "1", "--out", str(tmp_path / "r")]
+    assert main([*args, "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "memory budget of 1.0 MB" in err
