@@ -14,6 +14,7 @@ JSON files into ``benchmarks/results/train_accuracy.md`` and ``train_accuracy.pn
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -42,15 +43,11 @@ def run(args: argparse.Namespace) -> None:
     """Train one configuration and write its JSON."""
     import torch
 
-    from dronecap.nerf.config import parse_field, preset
+    from dronecap.nerf.config import apply_sets, preset
     from dronecap.nerf.trainer import Trainer
 
     torch.set_num_threads(args.threads)
-    changes = {}
-    for item in args.set:
-        k, v = item.split("=", 1)
-        changes[k] = parse_field(k, v)
-    cfg = preset(args.preset).replace(seed=args.seed, **changes)
+    cfg = apply_sets(preset(args.preset), args.set).replace(seed=args.seed)
     ds = dataset(args.gray, Path(args.cache))
     test = np.flatnonzero(ds.split == 2)
     curve_views = test[:: args.curve_every_view]
@@ -97,7 +94,7 @@ def run(args: argparse.Namespace) -> None:
         "n_max": tr.cfg.n_max,
         "threads": args.threads,
         "load_average": os.getloadavg()[0],
-        "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
+        "config": dataclasses.asdict(tr.cfg),  # resolved: n_max as trained
     }
     _write(args.name, out | {"finished": True})
     print(
