@@ -58,6 +58,7 @@ def run(args: argparse.Namespace) -> None:
     from dronecap.nerf import budget
     from dronecap.nerf.budget import BudgetConfig
     from dronecap.nerf.config import parse_field, preset
+    from dronecap.nerf.resolve import resolve
     from dronecap.nerf.trainer import Trainer
 
     torch.set_num_threads(args.threads)
@@ -76,7 +77,7 @@ def run(args: argparse.Namespace) -> None:
     curve_views = test[:: args.curve_every_view]
     bcfg = BudgetConfig(args.time_budget, args.target_psnr, args.plateau_db)
     state = budget.start(bcfg, cfg.steps)
-    tr = Trainer(cfg, ds)
+    tr = Trainer(resolve(cfg, ds, memory_fn=gap9_bytes), ds)  # sized as `dronecap train` does
     curve, ms = [], []
     cpu = 0.0  # process CPU seconds of the optimizer steps: idle-core time of a 1-thread run
     next_eval = args.eval_every
@@ -128,10 +129,11 @@ def run(args: argparse.Namespace) -> None:
         "ms_per_step_median": float(np.median(ms)),
         "render_seconds": render_s,
         "parameters": tr.parameter_count(),
-        "n_max": tr.n_max,
+        "n_max": tr.cfg.n_max,
         "threads": args.threads,
         "load_average": os.getloadavg()[0],
-        "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
+        "config": {k: getattr(tr.cfg, k) for k in tr.cfg.__dataclass_fields__},
+        "reasons": dict(tr.resolved.reasons),
     }
     _write(args.name, out | {"finished": True})
     print(
@@ -146,6 +148,13 @@ def _write(name: str, obj: dict) -> None:
     tmp = RUNS / f".{name}.json.tmp"
     tmp.write_text(json.dumps(obj, indent=1, default=list) + "\n")
     tmp.replace(RUNS / f"{name}.json")
+
+
+def gap9_bytes(cfg) -> float:
+    """Modelled GAP9 memory (bytes, Table II accounting) of a TrainConfig."""
+    from dronecap.gap9.model import cost_report
+
+    return cost_report(cfg)["memory"]["untiled"]["total"]
 
 
 def memory_mb(cfg_dict: dict) -> float:

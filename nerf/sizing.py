@@ -5,10 +5,12 @@ dataset's bounds, cameras and channels:
 
 - ``n_max`` (finest hash level): the AABB's longest side in pixel footprints, the footprint
   being ``near / focal`` (scene units per pixel at the mean near distance of the training
-  views); finer levels see no detail in the images and only add hash collisions;
+  views); finer levels see no detail in the images and only add hash collisions; at most
+  :data:`CELLS_PER_PIXEL` per pixel of the image side (cameras inside the scene: the near
+  distance is far closer than most surfaces);
 - ``march_steps``: the marching step is :data:`MARCH_PER_FOOTPRINT` of a footprint, so the
   samples per ray follow the resolution instead of a fixed count (fewer samples per ray: more
-  rays for the same ``batch_samples``);
+  rays for the same ``batch_samples``), with the same cap;
 - ``grid_res`` (occupancy grid): a cell spans about :data:`GRID_CELL_FOOTPRINTS` footprints,
   a power of two in [32, 128];
 - ``log2_hashmap`` (table size T per level): the largest power of two whose modelled device
@@ -33,6 +35,7 @@ from .config import TrainConfig
 
 MARCH_PER_FOOTPRINT = 1.0  # marching step / pixel footprint
 GRID_CELL_FOOTPRINTS = 4.0  # occupancy cell side / pixel footprint
+CELLS_PER_PIXEL = 2  # n_max and march_steps at most this many per image pixel (longest side)
 GRID_RES_RANGE = (32, 128)  # occupancy cells per axis
 LOG2_T_RANGE = (12, 19)  # table sizes considered (2^12 .. 2^19 rows per level)
 DEFAULT_BUDGET_MB = 21.0  # the paper's GAP9 footprint of the deployed row (Table II)
@@ -105,14 +108,24 @@ class Sizing:
         }
 
 
+def pixel_cap(facts: SceneFacts) -> int:
+    """Most cells (or marching steps) across the scene the images can pin down:
+    CELLS_PER_PIXEL per pixel of the longest image side. Binds when the cameras fly inside the
+    scene (a corridor), where the near distance is much closer than most surfaces."""
+    return CELLS_PER_PIXEL * max(facts.width, facts.height)
+
+
 def finest_resolution(facts: SceneFacts) -> int:
-    """Cells per axis of the finest hash level: longest AABB side / pixel footprint (>= 16)."""
-    return max(16, math.ceil(max(facts.extent) / facts.footprint))
+    """Cells per axis of the finest hash level: longest AABB side / pixel footprint, within
+    [16, :func:`pixel_cap`]."""
+    return min(pixel_cap(facts), max(16, math.ceil(max(facts.extent) / facts.footprint)))
 
 
 def march_steps(facts: SceneFacts) -> int:
-    """Candidate samples along the AABB diagonal for a step of MARCH_PER_FOOTPRINT footprints."""
-    return max(16, math.ceil(facts.diagonal / (MARCH_PER_FOOTPRINT * facts.footprint)))
+    """Candidate samples along the AABB diagonal for a step of MARCH_PER_FOOTPRINT footprints,
+    within [16, :func:`pixel_cap`]."""
+    n = math.ceil(facts.diagonal / (MARCH_PER_FOOTPRINT * facts.footprint))
+    return min(pixel_cap(facts), max(16, n))
 
 
 def grid_resolution(n_max: int) -> int:
@@ -170,18 +183,21 @@ def size_to_scene(
         f" data ({facts.width}x{facts.height} px, {facts.train_images} training views)",
     )
     n_max = finest_resolution(facts)
+    capped = f"; capped at {CELLS_PER_PIXEL} per image pixel ({pixel_cap(facts)})"
     choose(
         "n_max",
         n_max,
         f"longest AABB side {max(facts.extent):.3g} / pixel footprint {fp_mm:.3g} "
-        f"(near {facts.near:.3g} / focal {facts.focal:.4g} px): finer levels see no detail",
+        f"(near {facts.near:.3g} / focal {facts.focal:.4g} px): finer levels see no detail"
+        + (capped if n_max == pixel_cap(facts) else ""),
     )
     n_max = out.config.n_max
+    steps = march_steps(facts)
     choose(
         "march_steps",
-        march_steps(facts),
+        steps,
         f"one sample per {MARCH_PER_FOOTPRINT:g} pixel footprint along the AABB diagonal "
-        f"{facts.diagonal:.3g}",
+        f"{facts.diagonal:.3g}" + (capped if steps == pixel_cap(facts) else ""),
     )
     choose(
         "grid_res",

@@ -45,6 +45,20 @@ def test_choices_follow_the_footprint():
     assert len(s.lines()) == 5 and all(": " in line for line in s.lines())
 
 
+def test_cameras_inside_the_scene_are_capped_at_two_cells_per_pixel():
+    # near 0.1 / focal 200: footprint 0.0005 would ask 2 / 0.0005 = 4000 cells and
+    # 3.464 / 0.0005 = 6929 steps; the 100 px wide images cap both at 2 * 100 = 200
+    close = SceneFacts((2.0, 2.0, 2.0), 0.1, 200.0, 100, 80, 3, 30)
+    s = size_to_scene(preset("tiny-dronerf"), close, table_memory, 1e12)
+    assert (s.config.n_max, s.config.march_steps) == (200, 200)
+    assert "capped at 2 per image pixel (200)" in values_reasons(s)["n_max"]
+    assert s.config.grid_res == 64  # 200 / 4 = 50 -> 64
+
+
+def values_reasons(s: Sizing) -> dict:
+    return {c.field: c.reason for c in s.choices}
+
+
 def test_table_capped_at_what_the_finest_level_needs():
     # surface of the cube in footprints: 6 * 100^2 = 60000 rows -> 2^15.87 -> at most 2^16
     s = size_to_scene(preset("tiny-dronerf"), CUBE, table_memory, 1e12)
@@ -91,7 +105,8 @@ def test_lego_sized_with_the_gap9_model_fits_21_mb():
 def test_default_train_is_sized_to_the_cube_and_costed_as_trained(cube_h5, tmp_path, capsys):
     """`dronecap train` with no preset on the 24 px cube (f = 24 / (2 tan 0.4) = 28.38 px,
     near 1.5, AABB [-1, 1]^3): footprint 0.05285, n_max ceil(2 / 0.05285) = 38, marching
-    ceil(2 sqrt(3) / 0.05285) = 66 candidates, grid 38 / 4 -> 8 -> clamped to 32, table: the
+    ceil(2 sqrt(3) / 0.05285) = 66 candidates capped at 2 x 24 px = 48, grid 38 / 4 -> 8 ->
+    clamped to 32, table: the
     cube's surface 6 * 37.84^2 = 8592 rows -> at most 2^14, which fits 21 MB."""
     from dronecap.cli import main
 
@@ -99,11 +114,11 @@ def test_default_train_is_sized_to_the_cube_and_costed_as_trained(cube_h5, tmp_p
     args = ["train", str(cube_h5), "--steps", "4", "--batch-samples", "1024", "--out", str(run)]
     assert main([*args, "--no-progress", "--threads", "1"]) == 0
     out = capsys.readouterr().out
-    for line in ("n_max = 38:", "march_steps = 66:", "grid_res = 32:", "log2_hashmap = 14:"):
+    for line in ("n_max = 38:", "march_steps = 48:", "grid_res = 32:", "log2_hashmap = 14:"):
         assert f"sized: {line}" in out, line
     info = json.loads((run / "run.json").read_text())
     cost = json.loads((run / "cost.json").read_text())
-    want = {"n_max": 38, "march_steps": 66, "grid_res": 32, "log2_hashmap": 14}
+    want = {"n_max": 38, "march_steps": 48, "grid_res": 32, "log2_hashmap": 14}
     assert {k: info["config"][k] for k in want} == want
     assert {k: cost["config"][k] for k in want} == want
     assert "pixel footprint" in info["reasons"]["n_max"]
