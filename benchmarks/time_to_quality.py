@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> None:
     render_s = (time.perf_counter() - t0) / 5
     out = {
         "name": args.name,
-        "scene": args.scene,
+        "scene": args.label or args.scene,
         "preset": args.preset,
         "overrides": args.set,
         "seed": args.seed,
@@ -191,16 +191,20 @@ def report(args: argparse.Namespace) -> None:
         "Command: the `run` lines in docs/training.md; this table: "
         f"`.venv/bin/python benchmarks/time_to_quality.py report` (load {load[0]:.1f}).",
         "",
-        "| run | scene | preset + overrides | steps | PSNR dB | SSIM | train CPU s | ms/step | "
-        "render s/view | GAP9 MB | n_max | thr | load |",
-        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| run | scene | preset + overrides | until | steps | PSNR dB | SSIM | train CPU s | "
+        "ms/step | render s/view | GAP9 MB | n_max / march / grid / log2 T | thr | load |",
+        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|",
     ]
     for r in runs:
+        b, c = r["budget"], r["config"]
+        until = f"{b['time_budget_s']:g} s" if b["time_budget_s"] else "steps"
+        until += f", {r['stop_reason']}" if r["stop_reason"] else ""
+        sizes = f"{c['n_max']} / {c['march_steps']} / {c['grid_res']} / {c['log2_hashmap']}"
         lines.append(
-            f"| {r['name']} | {r['scene']} | {r['preset']} {' '.join(r['overrides'])} | "
-            f"{r['steps']} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['cpu_seconds']:.0f} | "
-            f"{r['ms_per_step_median']:.1f} | {r['render_seconds']:.2f} | "
-            f"{memory_mb(r['config']):.1f} | {r['n_max']} | {r['threads']} | "
+            f"| {r['name']} | {r['scene']} | {r['preset']} "
+            f"{' '.join(r['overrides'])} | {until} | {r['steps']} | {r['psnr']:.2f} | "
+            f"{r['ssim']:.3f} | {r['cpu_seconds']:.0f} | {r['ms_per_step_median']:.1f} | "
+            f"{r['render_seconds']:.2f} | {memory_mb(c):.1f} | {sizes} | {r['threads']} | "
             f"{r['load_average']:.1f} |"
         )
     text = "\n".join(lines) + "\n"
@@ -216,7 +220,7 @@ def report(args: argparse.Namespace) -> None:
             ax.plot(*PAPER_GPU, "k*", ms=12, label="paper, GPU")
         ax.set_xlabel("training time [CPU s, 1 thread]")
         ax.set_ylabel("test PSNR [dB] (every 10th test view)")
-        ax.set_title(Path(scene).stem)
+        ax.set_title(scene)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
@@ -230,6 +234,7 @@ def main() -> None:
     r = sub.add_parser("run")
     r.add_argument("name")
     r.add_argument("--scene", default="lego", help="lego, lego-gray or a dataset.h5 path")
+    r.add_argument("--label", help="scene name in the table and plot (default: --scene)")
     r.add_argument("--preset", default="tiny-dronerf-sized")
     r.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     r.add_argument("--steps", type=int, default=0, help="override the preset's step count")
