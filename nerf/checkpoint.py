@@ -10,6 +10,8 @@ import torch
 from dronecap.errors import InputError
 from dronecap.files import atomic_output
 
+from .resolve import Resolved, legacy_resolved
+
 CHECKPOINT_VERSION = 1
 
 
@@ -31,3 +33,15 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     if not isinstance(ck, dict) or ck.get("version") != CHECKPOINT_VERSION:
         raise InputError("not a dronecap checkpoint of this version", path)
     return ck
+
+
+def checkpoint_resolved(ck: dict[str, Any], path: str | Path) -> Resolved:
+    """The resolved configuration of checkpoint ``ck`` (read from ``path``); a checkpoint
+    written before resolved configs (a ``config`` and a ``scene``) gets it re-derived.
+    InputError when it holds neither."""
+    try:
+        if "resolved" in ck:
+            return Resolved.from_dict(ck["resolved"])
+        return legacy_resolved(ck["config"], ck["scene"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(f"checkpoint has no usable configuration ({err})", path) from None

@@ -82,11 +82,17 @@ def read_resolved(run_dir: str | Path) -> Resolved:
     """The resolved configuration a run folder was trained with (from its run.json).
 
     A run.json written before configs were resolved (``config`` + ``n_max``) is re-resolved
-    against the dataset it names, which gives the same values; InputError when that dataset is
-    gone or the file is not a run's.
+    against the dataset it names, which gives the same values; a folder with a checkpoint but
+    no run.json (a federated run) gives its checkpoint's. InputError when that dataset is gone
+    or the folder is not a run's.
     """
     path = Path(run_dir) / RUN_INFO
     if not path.exists():
+        if (Path(run_dir) / CHECKPOINT).exists():  # e.g. a federated run: its global model
+            from .checkpoint import checkpoint_resolved, read_checkpoint
+
+            ckpt = Path(run_dir) / CHECKPOINT
+            return checkpoint_resolved(read_checkpoint(ckpt), ckpt)
         raise InputError("not a training run folder (no run.json; run `dronecap train`)", run_dir)
     doc = _read_json(path)
     try:

@@ -25,7 +25,7 @@ from dronecap.errors import InputError
 from dronecap.progress import progress_bar
 
 from . import occupancy
-from .checkpoint import read_checkpoint, write_checkpoint
+from .checkpoint import checkpoint_resolved, read_checkpoint, write_checkpoint
 from .config import TrainConfig
 from .field import Field
 from .losses import huber_sum, psnr_from_mse
@@ -33,7 +33,7 @@ from .march_kernel import march_function
 from .marching import Samples, take_rays
 from .rays import camera_rays, ray_aabb
 from .render import Volume, render_rays, render_view
-from .resolve import Resolved, legacy_resolved, resolve, training_frames
+from .resolve import Resolved, resolve, training_frames
 from .volrend import render_packed
 
 MAX_BAD_STEPS = 20  # consecutive non-finite steps before training stops
@@ -366,13 +366,7 @@ class Trainer:
         of ``resolved``) load too. InputError when the file is unusable.
         """
         ck = read_checkpoint(path)
-        try:
-            if "resolved" in ck:
-                resolved = Resolved.from_dict(ck["resolved"])
-            else:
-                resolved = legacy_resolved(ck["config"], ck["scene"])
-        except (KeyError, TypeError, ValueError) as err:
-            raise InputError(f"checkpoint has no usable configuration ({err})", path) from None
+        resolved = checkpoint_resolved(ck, path)
         self = cls.__new__(cls)
         self._setup(resolved, device, backend)
         try:

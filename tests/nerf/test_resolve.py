@@ -57,3 +57,16 @@ def test_cost_json_and_cost_command_model_the_trained_n_max(name, cube_h5, tmp_p
     assert run_info["config"]["n_max"] == finest and "n_max" not in run_info
     if PRESETS[name].auto_n_max:
         assert finest != PRESETS[name].n_max  # sized to the cube, not the preset's 2048
+
+
+def test_cost_of_a_folder_with_only_a_checkpoint(cube_rgb, tmp_path):
+    """A federated run folder holds the global model's checkpoint.pt and no run.json: `dronecap
+    cost RUN` costs the configuration stored in the checkpoint."""
+    from dronecap.nerf.trainer import Trainer
+
+    run = tmp_path / "federated"
+    tr = Trainer(preset("test").replace(auto_n_max=True), cube_rgb)
+    tr.save(run / "checkpoint.pt")
+    assert main(["cost", str(run)]) == 0
+    rep = json.loads((run / "cost.json").read_text())
+    assert rep["config"]["n_max"] == tr.field.encoding.resolutions[-1] == 38
