@@ -92,10 +92,14 @@ def strip_priors(frames: Path) -> None:
     write_dataset(frames, ds)
 
 
+def slug(name: str) -> str:
+    """Folder name of a case."""
+    return name.replace(" ", "_").replace("(", "").replace(")", "").replace(",", "")
+
+
 def run_case(name: str, work: Path, n_sim: int) -> dict:
     """Ingest + sfm of one case in ``work/<slug>``; a table row."""
-    slug = name.replace(" ", "_").replace("(", "").replace(")", "").replace(",", "")
-    d = work / slug
+    d = work / slug(name)
     d.mkdir(parents=True, exist_ok=True)
     log = d / "log.txt"
     log.write_text("")
@@ -109,7 +113,7 @@ def run_case(name: str, work: Path, n_sim: int) -> dict:
         source = d / "lego_orbit.mp4"
         sfm_args += ["--gt", str(lego_video(source))]
     else:
-        fmt = name.split()[1]
+        fmt = name.split()[1].rstrip(",")
         source = work / f"capture_{fmt}_{n_sim}"  # shared by the runs with and without priors
         if not (source / "flight.json").exists():
             sim = ["simulate", "-o", str(source), "--format", fmt, "--frames", str(n_sim)]
@@ -188,7 +192,9 @@ def write_results(rows: list[dict], args: argparse.Namespace, load: str) -> None
         "Command: `OMP_NUM_THREADS=1 nice .venv/bin/python benchmarks/real_footage.py"
         + (f" --frames {args.frames}" if args.frames != 240 else "")
         + "`",
-        f"Load (uptime) at the start: {load}. Times are single-thread wall clock of `sfm`.",
+        f"Load (uptime) at the start of the last run: {load}. Times are single-thread wall "
+        "clock of `sfm` on a shared 2-core machine (each row's load is in the work folder's "
+        "row JSON); rows of earlier `--only` runs are kept.",
         "",
         "| case | frames in / kept | registered | reproj. px | sfm s | ATE % | rot. median ° "
         "| scale err. % | gravity ° | camera | remedy | floor |",
@@ -250,18 +256,19 @@ def main() -> None:
     load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     rows = []
     for name in CASES:
-        if args.only and not any(s in name for s in args.only):
-            continue
-        if (
-            name.startswith("himax")
-            and not HIMAX.exists()
-            or name.startswith("lego")
-            and not LEGO.exists()
-        ):
-            continue
-        print(f"--- {name}", flush=True)
-        rows.append(run_case(name, args.work, args.frames))
-        print(json.dumps(rows[-1]), flush=True)
+        saved = args.work / (slug(name) + ".row.json")
+        if args.only is None or any(s in name for s in args.only):
+            if name.startswith("himax") and not HIMAX.exists():
+                continue
+            if name.startswith("lego") and not LEGO.exists():
+                continue
+            print(f"--- {name}", flush=True)
+            row = run_case(name, args.work, args.frames)
+            row["load"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout
+            saved.write_text(json.dumps(row))
+            print(json.dumps(row), flush=True)
+        if saved.exists():  # rows of earlier --only runs stay in the table
+            rows.append(json.loads(saved.read_text()))
     write_results(rows, args, load)
 
 
