@@ -416,6 +416,12 @@ class GlobalEvaluator:
         with atomic_output(round_file(Path(run_dir) / "global", r)) as tmp:
             self.trainer.save(tmp)
         metrics = self.trainer.evaluate(self.test)
+        if not (np.isfinite(metrics["psnr"]) and np.isfinite(metrics["ssim"])):
+            raise FederationFailed(
+                f"round {r}: the global model's test PSNR is {metrics['psnr']} (diverged); "
+                "nothing recorded for this round",
+                run_dir,
+            )
         up = sum(entry["bytes_up"].values())
         down = sum(entry["bytes_down"].values())
         entry.update(
