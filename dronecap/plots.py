@@ -40,10 +40,11 @@ def _pyplot():
 
 
 def training_curve(metrics_path: str | Path, out: str | Path) -> Path | None:
-    """PSNR (estimated from the training loss) and loss vs step and vs seconds -> PNG.
+    """PSNR and loss vs step and vs training seconds -> PNG.
 
-    Reads ``history`` of a run's ``metrics.json``: rows {step, loss, psnr, seconds}; the test
-    PSNR of the finished run is drawn as a horizontal line.
+    Reads a run's ``metrics.json``: ``history`` (rows {step, loss, psnr, seconds}, the PSNR
+    estimated from the training loss), ``curve`` (held-out checks {step, seconds, psnr}, when
+    the run made them) and the final test PSNR (a horizontal line).
     """
     try:
         m = json.loads(Path(metrics_path).read_text())
@@ -56,11 +57,16 @@ def training_curve(metrics_path: str | Path, out: str | Path) -> Path | None:
     sec = np.array([r.get("seconds", np.nan) for r in rows], float)
     psnr = np.array([r.get("psnr", np.nan) for r in rows], float)
     loss = np.array([r.get("loss", np.nan) for r in rows], float)
-    test = m.get("test", {}).get("psnr")
+    test = (m.get("test") or {}).get("psnr")
+    curve = [c for c in m.get("curve") or [] if isinstance(c, dict) and "psnr" in c]
     plt = _pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     for ax, x, label in ((axes[0], step, "step"), (axes[1], sec, "training time (s)")):
         ax.plot(x, psnr, lw=1, label="train (from loss)")
+        if curve:
+            key = "step" if label == "step" else "seconds"
+            ax.plot([c[key] for c in curve], [c["psnr"] for c in curve], "o-", ms=3, lw=1,
+                    color="C1", label="held-out views")  # fmt: skip
         if isinstance(test, float) and np.isfinite(test):
             ax.axhline(test, color="C3", ls="--", lw=1, label=f"test {test:.2f} dB")
         ax.set_xlabel(label)

@@ -269,7 +269,7 @@ def train_run(
                     spr=f"{log['samples'] / max(log['rays'], 1):.1f}",
                     ms=f"{np.median(ms[-50:]):.0f}",
                 )
-            if trainer.step % 100 == 0:
+            if trainer.step % 100 == 0 or done:
                 history.append(
                     {k: log[k] for k in ("step", "loss", "psnr", "samples", "rays")}
                     | {"seconds": trainer.train_seconds}
