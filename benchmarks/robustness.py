@@ -173,19 +173,25 @@ def run_case(name: str, work: Path, frames: int, steps: int, train: bool = True)
             return rec
     d.mkdir(parents=True, exist_ok=True)
     log = d / "log.txt"
+    stamp = d / "commit.txt"  # the code that ran the case's first stage (stages resume)
+    if not stamp.exists():
+        stamp.write_text(os.environ.get("DRONECAP_SNAPSHOT", "work tree"))
     rec: dict = {"case": name, "kind": kind, "flags": " ".join(flags),
-                 "commit": os.environ.get("DRONECAP_SNAPSHOT", "work tree")}  # fmt: skip
+                 "commit": stamp.read_text().strip()}  # fmt: skip
     t0 = time.perf_counter()
     try:
         sim = ["simulate", "--frames", str(frames), "--seed", "0", *flags]
-        sh([*sim, "-o", str(d / "flight.mp4")], log)
+        if not (d / "flight.json").exists():  # finished stages are not re-run
+            sh([*sim, "-o", str(d / "flight.mp4")], log)
         gt = json.loads((d / "flight.json").read_text())
         rec["delivered"] = gt["stream"]["delivered"]
-        sh(["ingest", str(d / "flight.mp4"), "--workdir", str(d)], log)
+        if not (d / "frames.h5").exists():
+            sh(["ingest", str(d / "flight.mp4"), "--workdir", str(d)], log)
         from dronecap.datasets import open_dataset
 
         rec["kept"] = open_dataset(d / "frames.h5").n
-        sh(["sfm", "--gt", str(d / "flight.json"), "--threads", "1", "--workdir", str(d)], log)
+        if not (d / "posed.h5").exists():
+            sh(["sfm", "--gt", str(d / "flight.json"), "--threads", "1", "--workdir", str(d)], log)
         rep = json.loads((d / "sfm" / "report.json").read_text())
         acc = rep.get("accuracy", {})
         rec.update(
@@ -200,8 +206,8 @@ def run_case(name: str, work: Path, frames: int, steps: int, train: bool = True)
         if not train:
             raise StopIteration
         sh(["split", "--workdir", str(d)], log)
-        train = ["train", "--threads", "1", "--steps", str(steps), "--no-progress"]
-        sh([*train, "--workdir", str(d)], log)
+        train_cmd = ["train", "--threads", "1", "--steps", str(steps), "--no-progress"]
+        sh([*train_cmd, "--workdir", str(d)], log)
         m = json.loads((d / "runs" / "train" / "metrics.json").read_text())["test"]
         rec.update(psnr=m["psnr"], ssim=m["ssim"], test_views=m["views"])
         if kind in ("photometric", "reference", "all"):
@@ -213,7 +219,7 @@ def run_case(name: str, work: Path, frames: int, steps: int, train: bool = True)
                 rec["psnr_ref"], rec["ssim_ref"] = eval_line(out)
         if name == "distortion":
             pinhole_copy(d / "dataset.h5", d / "dataset_pinhole.h5")
-            sh([*train, "--dataset", str(d / "dataset_pinhole.h5"), "--out",
+            sh([*train_cmd, "--dataset", str(d / "dataset_pinhole.h5"), "--out",
                 str(d / "runs" / "pinhole")], log)  # fmt: skip
             m = json.loads((d / "runs" / "pinhole" / "metrics.json").read_text())["test"]
             rec["psnr_ignored"], rec["ssim_ignored"] = m["psnr"], m["ssim"]
