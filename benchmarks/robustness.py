@@ -202,7 +202,8 @@ def run_case(name: str, work: Path, frames: int, steps: int, train: bool = True)
         )
         posed = open_dataset(d / "posed.h5")
         rec["focal_err_pct"] = 100 * (posed.intrinsics.fx / true_focal(gt) - 1)
-        rec["camera"] = f"{posed.intrinsics.model} {list(np.round(posed.intrinsics.distortion, 3))}"
+        dist = [round(float(x), 3) for x in posed.intrinsics.distortion]
+        rec["camera"] = f"{posed.intrinsics.model} {dist}"
         if not train:
             raise StopIteration
         sh(["split", "--workdir", str(d)], log)
@@ -232,6 +233,22 @@ def run_case(name: str, work: Path, frames: int, steps: int, train: bool = True)
     return rec
 
 
+def link_and_ingest(d: Path) -> dict[str, str]:
+    """What the link did (flight.json) and what ingest dropped (its summary line in the log)."""
+    out = {}
+    if (d / "flight.json").exists():
+        st = json.loads((d / "flight.json").read_text())["stream"]
+        out["link"] = (f"{len(st['dropped'])} lost, {len(st['duplicated'])} dup., "
+                       f"{len(st['torn'])} torn")  # fmt: skip
+    if (d / "log.txt").exists():
+        m = re.search(
+            r"decoded \d+ frames, kept \d+, dropped: ([^(\n]*)", (d / "log.txt").read_text()
+        )
+        if m:
+            out["ingest"] = m.group(1).strip().rstrip(";").split(";")[0]
+    return out
+
+
 def fmt(x: object, spec: str) -> str:
     """Table cell: formatted number or a dash."""
     return "–" if x is None else format(x, spec)
@@ -252,9 +269,10 @@ def table(recs: list[dict], args: argparse.Namespace, load: str) -> str:
         "Δ PSNR = test PSNR minus the clean flight's (own test views). PSNR vs ref: the same run "
         "evaluated against noise-free, drift-free renders of the test poses (photometric cases).",
         "",
-        "| case | flags | delivered / kept | registered | ATE | rot. median | focal err. "
-        "| test PSNR / SSIM | Δ PSNR | PSNR / SSIM vs ref | note | commit |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| case | flags | link (truth) | ingest dropped | delivered / kept | registered | ATE "
+        "| rot. median | SfM camera | focal err. | test PSNR / SSIM | Δ PSNR | PSNR / SSIM vs ref "
+        "| note | commit |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in recs:
         delta = r["psnr"] - clean["psnr"] if clean and "psnr" in r else None
@@ -263,10 +281,14 @@ def table(recs: list[dict], args: argparse.Namespace, load: str) -> str:
             note = (f"distortion ignored: {r['psnr_ignored']:.2f} dB / {r['ssim_ignored']:.3f}"
                     f" ({r['psnr_ignored'] - r['psnr']:+.2f} dB)")  # fmt: skip
         ref = f"{r['psnr_ref']:.2f} / {r['ssim_ref']:.3f}" if "psnr_ref" in r else "–"
+        camera = re.sub(r"np.float64[(]([^)]*)[)]", r"\1", r.get("camera", "–"))
         lines.append(
-            f"| {r['case']} | `{r['flags']}` | {r.get('delivered', '–')} / {r.get('kept', '–')} "
+            f"| {r['case']} | `{r['flags']}` | {r.get('link', '–')} | {r.get('ingest', '–')} "
+            f"| {r.get('delivered', '–')} / {r.get('kept', '–')} "
             f"| {fmt(r.get('registered_pct'), '.1f')} % | {fmt(r.get('ate_pct'), '.2f')} % "
-            f"| {fmt(r.get('rot_median_deg'), '.2f')}° | {fmt(r.get('focal_err_pct'), '+.2f')} % "
+            f"| {fmt(r.get('rot_median_deg'), '.2f')}° "
+            f"| {camera} "
+            f"| {fmt(r.get('focal_err_pct'), '+.2f')} % "
             f"| {fmt(r.get('psnr'), '.2f')} / {fmt(r.get('ssim'), '.3f')} "
             f"| {fmt(delta, '+.2f')} | {ref} | {note} | {r.get('commit', '?')} |"
         )
@@ -274,23 +296,23 @@ def table(recs: list[dict], args: argparse.Namespace, load: str) -> str:
 
 
 def plot(recs: list[dict], path: Path) -> None:
-    """Bar chart: registered % and test PSNR per case."""
+    """Bar charts per case: registered %, ATE %, and test PSNR where trained."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     names = [r["case"] for r in recs]
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
-    a.bar(names, [r.get("registered_pct") or 0 for r in recs], color="tab:blue")
-    a.axhline(95, color="k", ls="--", lw=1)
-    a.set_ylabel("registered %")
-    b.bar(names, [r.get("psnr") or 0 for r in recs], color="tab:green", label="own test views")
-    b.scatter(names, [r.get("psnr_ref", np.nan) for r in recs], color="k", zorder=3,
-              label="vs noise-free renders")  # fmt: skip
-    b.set_ylabel("test PSNR (dB)")
-    b.legend(fontsize=8)
-    for ax in (a, b):
+    trained = any("psnr" in r for r in recs)
+    fig, axes = plt.subplots(1, 3 if trained else 2, figsize=(13 if trained else 9, 4))
+    panels = [("registered_pct", "registered %", 95.0), ("ate_pct", "ATE % of extent", 0.5)]
+    if trained:
+        panels.append(("psnr", "test PSNR (dB)", None))
+    for ax, (key, label, floor) in zip(axes, panels, strict=True):
+        ax.bar(names, [r.get(key) or 0.0 for r in recs], color="tab:blue")
+        if floor is not None:
+            ax.axhline(floor, color="k", ls="--", lw=1)
+        ax.set_ylabel(label)
         ax.tick_params(axis="x", rotation=60, labelsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -320,10 +342,11 @@ def main() -> None:
         if args.table_only:
             done = case_dir(args.work, name) / "result.json"
             if done.exists():
-                recs.append(json.loads(done.read_text()))
+                recs.append({**json.loads(done.read_text()), **link_and_ingest(done.parent)})
             continue
         train = name not in args.sfm_only.split(",")
-        recs.append(run_case(name, args.work, args.frames, args.steps, train))
+        rec = run_case(name, args.work, args.frames, args.steps, train)
+        recs.append({**rec, **link_and_ingest(case_dir(args.work, name))})
         print(json.dumps(recs[-1]), flush=True)
     load = open("/proc/loadavg").read().split()[:3]
     text = table(recs, args, f"load average {' '.join(load)} at the end (2 cores)")
