@@ -180,6 +180,12 @@ def verdict(row: dict) -> str:
     return "met" if not missed else "NOT met (" + ", ".join(missed) + ")"
 
 
+def load_of(row: dict) -> str:
+    """The 1-minute load average when the row finished (from its ``uptime`` line)."""
+    text = row.get("load", "")
+    return text.split("load average:")[-1].split(",")[0].strip() if "average:" in text else text
+
+
 def fmt(v, spec: str) -> str:
     return "–" if v is None else format(v, spec)
 
@@ -192,24 +198,25 @@ def write_results(rows: list[dict], args: argparse.Namespace, load: str) -> None
         "Command: `OMP_NUM_THREADS=1 nice .venv/bin/python benchmarks/real_footage.py"
         + (f" --frames {args.frames}" if args.frames != 240 else "")
         + "`",
-        f"Load (uptime) at the start of the last run: {load}. Times are single-thread wall "
-        "clock of `sfm` on a shared 2-core machine (each row's load is in the work folder's "
-        "row JSON); rows of earlier `--only` runs are kept.",
+        f"Times are single-thread wall clock of `sfm` on a 2-core machine shared with other "
+        f"jobs; the load column is the 1-minute load average when each row finished (this "
+        f"invocation started at load {load.split('load average:')[-1].split(',')[0].strip()}); "
+        "rows of earlier `--only` runs are kept.",
         "",
         "| case | frames in / kept | registered | reproj. px | sfm s | ATE % | rot. median ° "
-        "| scale err. % | gravity ° | camera | remedy | floor |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scale err. % | gravity ° | camera | remedy | floor | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['case']} | {r['error']} | | | | | | | | | | {verdict(r)} |")
+            lines.append(f"| {r['case']} | {r['error']} | | | | | | | | | | {verdict(r)} | |")
             continue
         lines.append(
             f"| {r['case']} | {fmt(r['frames_in'], 'd')} / {r['kept']} "
             f"| {r['registered_pct']:.1f} % | {fmt(r['reproj_px'], '.3f')} | {r['seconds']:.0f} "
             f"| {fmt(r.get('ate_pct'), '.2f')} | {fmt(r.get('rot_deg'), '.2f')} "
             f"| {fmt(r.get('scale_err_pct'), '.2f')} | {fmt(r.get('gravity_deg'), '.2f')} "
-            f"| {r['camera']} | {r['remedy'] or '–'} | {verdict(r)} |"
+            f"| {r['camera']} | {r['remedy'] or '–'} | {verdict(r)} | {load_of(r)} |"
         )
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "real_footage.md").write_text("\n".join(lines) + "\n")
