@@ -175,6 +175,7 @@ def report(args: argparse.Namespace) -> None:
     import matplotlib.pyplot as plt
 
     runs = [json.loads(p.read_text()) for p in sorted(RUNS.glob("*.json"))]
+    stopped = [r for r in runs if not r.get("finished") and r["curve"]]
     runs = [r for r in runs if r.get("finished")]
     load = os.getloadavg()
     lines = [
@@ -184,8 +185,10 @@ def report(args: argparse.Namespace) -> None:
         "(plot) uses every 10th test view, evaluation time excluded. Training time is process "
         "CPU time of the optimizer steps (1 torch thread unless the `thr` column says "
         "otherwise: the time the run takes on an idle core), measured under `nice` on the "
-        "shared 2-core machine; ms/step is wall time under that load (the `load` column, "
-        "1-minute load average at the end of each run). The paper's GPU point: "
+        "shared 2-core machine; ms/step and render s/view are wall times under that load (the "
+        "`load` column, "
+        "1-minute load average at the end of each run): not comparable between rows. The paper's "
+        "GPU point: "
         f"{PAPER_GPU[1]} dB in {PAPER_GPU[0]:.0f} s.",
         "",
         "Command: the `run` lines in docs/training.md; this table: "
@@ -207,13 +210,25 @@ def report(args: argparse.Namespace) -> None:
             f"{r['render_seconds']:.2f} | {memory_mb(c):.1f} | {sizes} | {r['threads']} | "
             f"{r['load_average']:.1f} |"
         )
+    if stopped:
+        lines += [
+            "",
+            "Runs that died before their final evaluation (lego; PSNR on every 10th test view, "
+            "20 views, at the last check):",
+            "",
+            "| run | step | train CPU s | PSNR dB (20 views) |",
+            "|---|---:|---:|---:|",
+        ]
+        for r in stopped:
+            c = r["curve"][-1]
+            lines.append(f"| {r['name']} | {c['step']} | {c['seconds']:.0f} | {c['psnr']:.2f} |")
     text = "\n".join(lines) + "\n"
     print(text)
     (RESULTS / "time_to_quality.md").write_text(text)
     scenes = sorted({r["scene"] for r in runs})
     fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.2), squeeze=False)
     for ax, scene in zip(axes[0], scenes, strict=True):
-        for r in (r for r in runs if r["scene"] == scene):
+        for r in (r for r in runs + stopped if r.get("scene", "lego") == scene):
             c = r["curve"]
             ax.plot([p["seconds"] for p in c], [p["psnr"] for p in c], "o-", ms=3, label=r["name"])
         if scene == "lego":
