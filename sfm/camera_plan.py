@@ -4,9 +4,10 @@
   flight.json, or ``--camera-from`` an earlier posed.h5 of the same drone) is given to COLMAP
   with its distortion model and never changed. Known intrinsics are what make forward flights
   reconstructable (self-calibration scatters, see docs/sfm.md).
-- **refine**: start from the known camera; bundle adjustment refines the focal length(s) and the
-  distortion. The principal point stays where the calibration put it (on 160-px frames COLMAP
-  cannot pin it down; AI-deck calibrations put it 30-60 px off the centre row).
+- **refine**: map with the known camera fixed, then one final bundle adjustment refines the focal
+  length(s) and the distortion. The principal point stays where the calibration put it (on
+  160-px frames COLMAP cannot pin it down; AI-deck calibrations put it 30-60 px off the centre
+  row).
 - **estimate**: self-calibration (SIMPLE_RADIAL). With a known camera its principal point is kept
   (never assumed at the centre when it is known); without, COLMAP puts it at the image centre.
 - **auto** (default): fixed when a camera is known (``camera_source`` "calibration" or
@@ -42,8 +43,15 @@ class CameraPlan:
 
     @property
     def refine(self) -> bool:
-        """True when focal length and distortion are refined (refine, estimate)."""
-        return self.mode != "fixed"
+        """True when mapping refines focal length and distortion (estimate)."""
+        return self.mode == "estimate"
+
+    @property
+    def refine_after(self) -> bool:
+        """True when a final bundle adjustment refines them (refine): mapping keeps the camera
+        fixed, because refining a many-parameter model (OPENCV: 6 values) from the first few
+        frames of a 160-px flight diverges (measured: fx 222 -> 458, k1 -0.15 -> -4.5)."""
+        return self.mode == "refine"
 
     def colmap(self) -> tuple[str, list[float]] | None:
         """(COLMAP model name, params in COLMAP's order) or None; see :func:`colmap_camera`."""

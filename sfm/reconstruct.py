@@ -46,11 +46,13 @@ def colmap_job(
     options: dict[str, Any],
     camera: tuple[str, list[float]] | None,
     refine_camera: bool,
+    refine_after: bool = False,
 ) -> dict[str, Any]:
     """Child-process body: extract, match, map, extend. Returns a JSON-able summary.
 
     ``camera``: (COLMAP model, params) to start from, or None (COLMAP guesses SIMPLE_RADIAL);
-    ``refine_camera``: whether mapping refines focal length and distortion.
+    ``refine_camera``: whether mapping refines focal length and distortion; ``refine_after``:
+    whether a final bundle adjustment of the chosen model refines them (principal point fixed).
 
     Emits ("phase", name, registered_so_far) when a phase starts and ("registered", k) when the
     mapper registers k more frames. The summary holds per-image keypoints, matching info,
@@ -119,7 +121,27 @@ def colmap_job(
             k = max(ext, key=lambda j: ext[j]["frames"])
             if ext[k]["frames"] > size:
                 out["best"] = k
+    if refine_after:
+        t = phase("refine camera", found[best]["frames"])
+        out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
+        times["refine_camera"] = time.perf_counter() - t
     return out
+
+
+def refine_camera_of(model: Path, out: Path) -> str:
+    """Bundle-adjust ``model`` refining focal length(s) and distortion (not the principal
+    point); written to ``out``, whose path is returned."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(model)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = True
+    ba.refine_extra_params = True
+    ba.refine_principal_point = False
+    pycolmap.bundle_adjustment(rec, ba)
+    out.mkdir(parents=True, exist_ok=True)
+    rec.write(out)
+    return str(out)
 
 
 @dataclass
@@ -180,7 +202,7 @@ def reconstruct(
             count[0] += ev[1]
 
     job = {"work": str(work), "names": names, "options": opts.to_dict()}
-    job.update(camera=plan.colmap(), refine_camera=plan.refine)
+    job.update(camera=plan.colmap(), refine_camera=plan.refine, refine_after=plan.refine_after)
     try:
         summary = run_isolated(
             "dronecap.sfm.reconstruct:colmap_job",
