@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from typing import NoReturn
 
 # name -> (module, one-line help). The help is repeated here so `--help` imports nothing.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -52,6 +53,14 @@ class _HelpWithDefaults(argparse.HelpFormatter):
         return text
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """A bad option value is one line (not argparse's usage block) and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        print(f"{self.prog}: error: {message} (see `{self.prog} --help`)", file=sys.stderr)
+        raise SystemExit(2)
+
+
 # Optional dependencies (pyproject extras): top-level module -> the extra that installs it.
 OPTIONAL_MODULES = {"open3d": "sim", "flwr": "federated", "ray": "federated"}
 
@@ -79,7 +88,7 @@ def _top_parser() -> argparse.ArgumentParser:
 def build_parser(name: str) -> tuple[argparse.ArgumentParser, object]:
     """The full parser of one sub-command and its module (imports that module)."""
     module = importlib.import_module(f"dronecap.commands.{COMMANDS[name][0]}")
-    p = argparse.ArgumentParser(
+    p = _OneLineParser(
         prog=f"dronecap {name}", description=module.HELP, formatter_class=_HelpWithDefaults
     )
     p.add_argument(

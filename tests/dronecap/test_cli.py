@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+import pytest
+
 from dronecap import cli
 
 
@@ -33,3 +35,11 @@ def test_quiet_flag_turns_progress_off(monkeypatch, capsys):
     monkeypatch.setenv(progress.ENV, "bar")  # restored after the test
     assert cli.main(["-q", "run", "--file", "/nonexistent/pipelines.yaml"]) == 1
     assert progress.mode() == "off"
+
+
+def test_bad_option_value_is_one_line(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["train", "--threads", "abc"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2
+    assert len(err.strip().splitlines()) == 1 and "--threads" in err and "usage" not in err
