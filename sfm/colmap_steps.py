@@ -248,7 +248,9 @@ def incremental_map(
 
 
 GENERAL_CONFIGS = ("CALIBRATED", "UNCALIBRATED")  # two-view geometries with parallax
-INIT_CANDIDATES = 30  # pairs (most inliers first) whose triangulation angle is measured
+INIT_CANDIDATES = 30  # pairs (most inliers first) whose triangulation angle is measured per tier
+FALLBACK_MIN_ANGLE = 1.0  # deg: below this a pair is a near-duplicate view, never a start
+WIDEST_GAP_DIVISOR = 4  # the initial pair's gap widens up to frames / 4 (loop twins lie ~N/2 apart)
 
 
 def initial_pair(
@@ -277,24 +279,40 @@ def initial_pair(
         images = {im.image_id: im for im in db.read_all_images()}
         pair_ids, geoms = db.read_two_view_geometries()
         rank = {i: r for r, i in enumerate(sorted(images, key=lambda i: images[i].name))}
-        cands = []
+        general_pairs = []
         for pair_id, g in zip(pair_ids, geoms, strict=True):
             a, b = pycolmap.pair_id_to_image_pair(pair_id)
             gap = abs(rank[a] - rank[b])
-            if int(g.config) in general and min_gap <= gap <= opts.init_max_gap:
-                cands.append((g.inlier_matches.shape[0], a, b, g))
-        cands.sort(key=lambda c: -c[0])
-        measured = []
-        for n, a, b, g in cands[:INIT_CANDIDATES]:
-            cam_a = db.read_camera(images[a].camera_id)
-            cam_b = db.read_camera(images[b].camera_id)
-            kp_a = np.asarray(db.read_keypoints(a))[:, :2].astype(np.float64)
-            kp_b = np.asarray(db.read_keypoints(b))[:, :2].astype(np.float64)
-            ok = pycolmap.estimate_two_view_geometry_pose(cam_a, kp_a, cam_b, kp_b, g)
-            angle = float(np.degrees(g.tri_angle)) if ok and g.tri_angle >= 0 else 0.0
-            measured.append((n, angle, a, b))
-    pick = choose_initial_pair(measured, opts.init_min_tri_angle)
-    info: dict[str, Any] = {"candidates": len(cands), "measured": len(measured)}
+            if int(g.config) in general and gap >= min_gap:
+                general_pairs.append((g.inlier_matches.shape[0], gap, a, b, g))
+        general_pairs.sort(key=lambda c: -c[0])
+        measured: list[tuple[int, float, int, int]] = []
+        done: set[tuple[int, int]] = set()
+        pick, max_gap = None, opts.init_max_gap
+        widest = max(opts.init_max_gap, len(images) // WIDEST_GAP_DIVISOR)
+        while pick is None:  # widen the gap until a pair qualifies (dense selections)
+            tier = [c for c in general_pairs if c[1] <= max_gap and (c[2], c[3]) not in done]
+            for n, _, a, b, g in tier[:INIT_CANDIDATES]:
+                done.add((a, b))
+                cam_a = db.read_camera(images[a].camera_id)
+                cam_b = db.read_camera(images[b].camera_id)
+                kp_a = np.asarray(db.read_keypoints(a))[:, :2].astype(np.float64)
+                kp_b = np.asarray(db.read_keypoints(b))[:, :2].astype(np.float64)
+                ok = pycolmap.estimate_two_view_geometry_pose(cam_a, kp_a, cam_b, kp_b, g)
+                angle = float(np.degrees(g.tri_angle)) if ok and g.tri_angle >= 0 else 0.0
+                measured.append((n, angle, a, b))
+            pick = choose_initial_pair(measured, opts.init_min_tri_angle)
+            if pick is not None or max_gap >= widest:
+                break
+            max_gap = min(2 * max_gap, widest)
+    if pick is None:  # nothing reaches the angle: the widest-angle pair that is no duplicate
+        wide = [m for m in measured if m[1] >= FALLBACK_MIN_ANGLE]
+        pick = max(wide, key=lambda m: m[1]) if wide else None
+    info: dict[str, Any] = {
+        "candidates": len(general_pairs),
+        "measured": len(measured),
+        "max_gap": max_gap,
+    }
     if pick is None:
         info["chosen"] = None
         return None, info
