@@ -30,6 +30,10 @@ REPLAN_FRACTION = 0.05  # re-plan the step count every 5 % of the time budget
 CHECK_FRACTION = 0.05  # a held-out check every 5 % of the planned steps (20 curve points)
 RECENT_STEPS = 200  # step times the plan is made from (the latest ones)
 PROBE_STEPS = 300  # steps before the first plan (the occupancy warm-up makes them slower)
+# lr_final_ratio of a time-budgeted run unless the user sets one: lego, 60 s on one thread
+# (~1.8k steps), 27.50 dB with 0.3 against 26.09 with the 10k-step schedule's 0.03
+# (benchmarks/results/time_to_quality.md); longer budgets not measured
+BUDGET_LR_FINAL_RATIO = 0.3
 
 
 @dataclass(frozen=True)

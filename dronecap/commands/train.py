@@ -85,6 +85,11 @@ def run(args: argparse.Namespace) -> int:
     if args.resume_from and args.no_resume:
         raise InputError("give --resume-from or --no-resume, not both")
     until = _until(args)
+    given = {a.split("=", 1)[0].strip().replace("-", "_") for a in args.set}
+    if until.time_budget_s and args.cfg_lr_final_ratio is None and "lr_final_ratio" not in given:
+        from dronecap.nerf.budget import BUDGET_LR_FINAL_RATIO
+
+        cfg = cfg.replace(lr_final_ratio=BUDGET_LR_FINAL_RATIO)  # a short schedule decays less
     dataset = workspace.resolve(args.workdir, args.dataset, workspace.DATASET)
     out = workspace.resolve(args.workdir, args.out, workspace.TRAIN_RUN)
     from dronecap.commands.cost import write_run_cost

@@ -140,3 +140,16 @@ def test_bad_budget_options_are_one_line(cube_h5, tmp_path, capsys, option, word
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and words in err
     assert not out.exists()
+
+
+def test_time_budget_run_decays_less_unless_told(cube_h5, tmp_path):
+    import json
+
+    from dronecap.cli import main
+
+    for extra, ratio in (([], 0.3), (["--lr-final-ratio", "0.05"], 0.05)):
+        run = tmp_path / f"run{ratio}"
+        args = ["train", str(cube_h5), "--preset", "test", "--time-budget", "0.5", *extra]
+        assert main([*args, "--out", str(run), "--no-progress", "--threads", "1"]) == 0
+        m = json.loads((run / "metrics.json").read_text())
+        assert m["config"]["lr_final_ratio"] == ratio and m["until"]["time_budget_s"] == 0.5
