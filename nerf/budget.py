@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 REPLAN_FRACTION = 0.05  # re-plan the step count every 5 % of the time budget
-CHECK_FRACTION = 0.05  # a held-out check every 5 % of the planned steps (20 curve points)
+CHECK_FRACTION = 0.1  # a held-out check every 10 % of the planned steps (10 curve points)
 RECENT_STEPS = 200  # step times the plan is made from (the latest ones)
 PROBE_STEPS = 300  # steps before the first plan (the occupancy warm-up makes them slower)
 # lr_final_ratio of a time-budgeted run unless the user sets one: lego, 60 s on one thread
@@ -52,7 +52,7 @@ class BudgetConfig:
     target_psnr: float | None = None
     plateau_db: float = 0.0
     plateau_checks: int = 4
-    check_views: int = 5
+    check_views: int = 3
 
     def problems(self) -> list[str]:
         """Why the settings are unusable (empty when they are fine)."""

@@ -65,12 +65,12 @@ def test_plateau_stops_when_the_last_checks_gain_too_little():
     assert reasons[6].startswith("plateau: +0.040 dB")
 
 
-def test_checks_every_twentieth_of_the_plan_not_after_the_last_step():
+def test_checks_every_tenth_of_the_plan_not_after_the_last_step():
     cfg = BudgetConfig()
     state = budget.start(cfg, 1000)
     due = [s for s in range(1, 1001) if budget.check_due(cfg, state, s)
            and budget.record_check(cfg, state, s, 0.0, 20.0) is None]  # fmt: skip
-    assert due == list(range(50, 1000, 50))
+    assert due == list(range(100, 1000, 100))
 
 
 @pytest.mark.parametrize(
@@ -95,7 +95,7 @@ def test_state_round_trips():
 
 
 def test_train_stops_at_a_target_and_records_its_curve(cube_h5, tmp_path, capsys):
-    """A 1 dB target is met by the first held-out check (step 5 of 100: 5 %)."""
+    """A 1 dB target is met by the first held-out check (step 10 of 100: 10 %)."""
     import json
 
     from dronecap.cli import main
@@ -105,12 +105,12 @@ def test_train_stops_at_a_target_and_records_its_curve(cube_h5, tmp_path, capsys
     assert main([*args, "--out", str(run), "--no-progress", "--threads", "1"]) == 0
     assert "stopped early: target PSNR 1 dB reached" in capsys.readouterr().out
     m = json.loads((run / "metrics.json").read_text())
-    assert m["steps"] == 5 and [p["step"] for p in m["curve"]] == [5]
+    assert m["steps"] == 10 and [p["step"] for p in m["curve"]] == [10]
     assert m["until"]["target_psnr"] == 1.0
-    assert (run / "progress" / "step_000005.png").exists()  # the half-resolution preview
+    assert (run / "progress" / "step_000010.png").exists()  # the half-resolution preview
 
 
-def test_fixed_steps_record_twenty_checks(cube_h5, tmp_path):
+def test_fixed_steps_record_ten_checks(cube_h5, tmp_path):
     import json
 
     from dronecap.cli import main
@@ -119,7 +119,7 @@ def test_fixed_steps_record_twenty_checks(cube_h5, tmp_path):
     args = ["train", str(cube_h5), "--preset", "test", "--steps", "40", "--out", str(run)]
     assert main([*args, "--no-progress", "--threads", "1"]) == 0
     m = json.loads((run / "metrics.json").read_text())
-    assert m["steps"] == 40 and [p["step"] for p in m["curve"]] == list(range(2, 40, 2))
+    assert m["steps"] == 40 and [p["step"] for p in m["curve"]] == list(range(4, 40, 4))
     assert m["until"]["stop_reason"] is None
 
 
