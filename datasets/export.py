@@ -195,7 +195,8 @@ def export_transforms(
     with atomic_output(out_dir) as tmp:
         (tmp / "images").mkdir(parents=True)
         for i, f in enumerate(files):
-            cv2.imwrite(str(tmp / f), _bgr(ds, i))
+            # imencode + a plain write: a full disk raises (cv2.imwrite only returns False)
+            (tmp / f).write_bytes(cv2.imencode(".png", _bgr(ds, i))[1].tobytes())
         (tmp / "transforms.json").write_text(json.dumps(meta, indent=1))
         if not problem:
             by_file = dict(zip(files, frames, strict=True))
