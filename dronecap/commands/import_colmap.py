@@ -11,14 +11,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of the command."""
     p.add_argument("model", help="COLMAP model folder (cameras/images/points3D .bin or .txt)")
     p.add_argument("images", help="folder the model's image names are relative to")
-    p.add_argument("-o", "--output", help="dataset to write (default: WORKDIR/dataset.h5)")
-    p.add_argument("--size", type=int, default=160, help="stored image width in pixels")
-    p.add_argument(
-        "--color",
-        choices=("auto", "rgb", "gray"),
-        default="auto",
-        help="stored colour; auto: gray when every image is gray",
-    )
+    from dronecap.commands.import_transforms import add_import_options
+
+    add_import_options(p)
 
 
 def run(args: argparse.Namespace) -> int:

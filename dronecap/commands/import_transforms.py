@@ -13,6 +13,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "source",
         help="folder with transforms.json or transforms_{train,val,test}.json, or a .json file",
     )
+    add_import_options(p)
+
+
+def add_import_options(p: argparse.ArgumentParser) -> None:
+    """The options every scene importer shares: output, stored width, colour."""
     p.add_argument("-o", "--output", help="dataset to write (default: WORKDIR/dataset.h5)")
     p.add_argument("--size", type=int, default=160, help="stored image width in pixels")
     p.add_argument(
