@@ -350,6 +350,16 @@ _CONFIG_FIELDS = (
 )  # fmt: skip
 
 
+DEPLOY_TILE = 1024  # samples per tile on GAP9 (the paper's deployment; fits its 1.5 MB L2)
+
+
+def deployed(cfg: TrainConfig) -> TrainConfig:
+    """The configuration a trained run would run on GAP9: the same model and batch in tiles of
+    at most :data:`DEPLOY_TILE` samples. On the CPU a run may accumulate fewer, larger tiles
+    (faster there); tiles only split the batch, so the trained model is the same."""
+    return cfg.replace(tile_samples=min(cfg.tile_samples, DEPLOY_TILE))
+
+
 def cost_report(
     cfg: TrainConfig,
     platform: Platform | None = None,

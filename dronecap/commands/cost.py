@@ -83,7 +83,9 @@ def _config(args: argparse.Namespace):
     if args.run_dir and args.preset:
         raise InputError("give either RUN_DIR or --preset, not both")
     if args.run_dir:
-        cfg = read_resolved(args.run_dir).config
+        from dronecap.gap9.model import deployed
+
+        cfg = deployed(read_resolved(args.run_dir).config)
         default_out = Path(args.run_dir) / COST
     else:
         try:
@@ -119,10 +121,10 @@ def write_run_cost(run_dir: str | Path) -> Path:
     """``RUN_DIR/cost.json``: the report ``dronecap cost RUN_DIR`` gives with its defaults
     (the train command calls this: the NeRF core never imports the cost model)."""
     from dronecap.files import atomic_output
-    from dronecap.gap9.model import cost_report
+    from dronecap.gap9.model import cost_report, deployed
     from dronecap.nerf.run_dir import COST, read_resolved
 
-    rep = cost_report(read_resolved(run_dir).config)
+    rep = cost_report(deployed(read_resolved(run_dir).config))
     out = Path(run_dir) / COST
     with atomic_output(out) as tmp:
         tmp.write_text(json.dumps(rep, indent=1))

@@ -241,3 +241,17 @@ def test_sized_preset_fits_where_tiny_dronerf_fits(gap9):
     assert b["memory"]["untiled"]["total"] < a["memory"]["untiled"]["total"]
     assert b["ops"]["step"]["total"] <= a["ops"]["step"]["total"]
     assert all(v["fits"] for v in b["verdicts"].values())
+
+
+def test_a_run_is_costed_in_gap9_tiles():
+    """A CPU run that accumulated one 8192-sample tile is deployed on GAP9 in 1024-sample tiles
+    (the same model and batch): the L2 check is about the deployed tile."""
+    from dronecap.gap9.model import DEPLOY_TILE, cost_report, deployed
+    from dronecap.nerf.config import preset
+
+    cpu = preset("tiny-dronerf").replace(tile_samples=8192, log2_hashmap=14, n_max=320)
+    assert not cost_report(cpu)["verdicts"]["l2"]["fits"]
+    dep = deployed(cpu)
+    assert dep.tile_samples == DEPLOY_TILE and dep.batch_samples == cpu.batch_samples
+    assert cost_report(dep)["verdicts"]["l2"]["fits"]
+    assert deployed(preset("tiny-dronerf").replace(tile_samples=512)).tile_samples == 512
