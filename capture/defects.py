@@ -103,6 +103,8 @@ def detect_bayer(gray: np.ndarray) -> str | None:
     """The Bayer pattern of a raw mosaic fed as gray (uint8 [H, W], even size), else None."""
     g = gray.astype(np.float32)
     h, w = (g.shape[0] // 2) * 2, (g.shape[1] // 2) * 2
+    if h < 4 or w < 4:  # too small to tell a mosaic from texture
+        return None
     g = g[:h, :w]
     d1x = np.abs(np.diff(g, axis=1)).mean()
     d2x = np.abs(g[:, 2:] - g[:, :-2]).mean()
