@@ -14,7 +14,6 @@ writes ``benchmarks/results/reliability.md``.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import signal
 import statistics
@@ -63,20 +62,6 @@ def as_version_1(src: Path, dst: Path) -> Path:
     return dst
 
 
-def same(a: Dataset, b: Dataset) -> bool:
-    for f in dataclasses.fields(Dataset):
-        x, y = getattr(a, f.name), getattr(b, f.name)
-        if isinstance(x, dict) and any(isinstance(v, np.ndarray) for v in x.values()):
-            if x.keys() != y.keys() or any(not np.array_equal(x[k], y[k]) for k in x):
-                return False
-        elif isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
-            if x is None or y is None or not np.array_equal(x, y):
-                return False
-        elif x != y:
-            return False
-    return True
-
-
 OUTCOMES = ("harmless", "silently different", "rejected", "other exception")
 
 
@@ -90,7 +75,7 @@ def read_outcome(path: Path, ref: Dataset) -> str:
         signal.alarm(HANG_S)
         code = 3
         try:
-            code = 0 if same(open_dataset(path), ref) else 1
+            code = 0 if open_dataset(path).same_as(ref) else 1
         except DatasetError:
             code = 2
         except BaseException:  # noqa: BLE001, S110  (counted as "other exception")

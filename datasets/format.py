@@ -113,6 +113,20 @@ class Dataset:
             raise DatasetError(f"has no train/test split (run `dronecap split`) for {split!r}")
         return np.flatnonzero(self.split == SPLITS[split])
 
+    def same_as(self, other: Dataset) -> bool:
+        """Every field equal to ``other``'s (arrays exactly): a file read back is the same data."""
+        for f in dataclasses.fields(Dataset):
+            x, y = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(x, dict) and any(isinstance(v, np.ndarray) for v in x.values()):
+                if x.keys() != y.keys() or any(not np.array_equal(x[k], y[k]) for k in x):
+                    return False
+            elif isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
+                if x is None or y is None or not np.array_equal(x, y):
+                    return False
+            elif x != y:
+                return False
+        return True
+
     def subset(self, idx: np.ndarray) -> Dataset:
         """A new Dataset holding frames ``idx`` (every per-frame array is sliced)."""
         idx = np.asarray(idx, dtype=np.int64)

@@ -9,7 +9,6 @@ rejected with one line; a command that exits 0 wrote valid output from unchanged
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 from collections import Counter
@@ -20,7 +19,7 @@ import h5py
 import numpy as np
 import pytest
 
-from dronecap.datasets.format import Dataset, DatasetError, open_dataset
+from dronecap.datasets.format import DatasetError, open_dataset
 from tests.reliability.conftest import run_cli
 
 SEED = 19
@@ -263,21 +262,6 @@ def mutations() -> list[tuple[str, str, Mutation]]:
     return out
 
 
-def same(a: Dataset, b: Dataset) -> bool:
-    """Every field of two datasets equal (arrays exactly)."""
-    for f in dataclasses.fields(Dataset):
-        x, y = getattr(a, f.name), getattr(b, f.name)
-        if isinstance(x, dict) and any(isinstance(v, np.ndarray) for v in x.values()):
-            if x.keys() != y.keys() or any(not np.array_equal(x[k], y[k]) for k in x):
-                return False
-        elif isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
-            if x is None or y is None or not np.array_equal(x, y):
-                return False
-        elif x != y:
-            return False
-    return True
-
-
 def strict_json(path: Path) -> object:
     def refuse(const: str) -> None:
         raise ValueError(f"{const} in {path}")
@@ -323,7 +307,7 @@ def test_fuzz_of_the_readers(small_files: dict[str, Path], tmp_path: Path) -> No
         mutate(src, rng)
         what = f"#{i} {kind} {label}"
         try:
-            identical = same(open_dataset(src), reference[kind])
+            identical = open_dataset(src).same_as(reference[kind])
         except DatasetError as err:
             identical = None
             if "\n" in str(err) or str(src) not in str(err):
@@ -370,7 +354,7 @@ def test_every_single_bit_flip_of_the_header_is_detected_or_harmless(
         b[pos] ^= 1 << (pos % 8)
         p.write_bytes(bytes(b))
         try:
-            if not same(open_dataset(p), reference):
+            if not open_dataset(p).same_as(reference):
                 bad.append(pos)
         except DatasetError:
             pass
