@@ -26,7 +26,6 @@ get the every-8th test split of ``dronecap split``.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 from pathlib import Path
 from typing import Any
@@ -45,6 +44,7 @@ from dronecap.datasets.import_scene import (
     white_background,
 )
 from dronecap.errors import InputError
+from dronecap.files import sha256_file
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".exr", ".pgm")
 CAMERA_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
@@ -212,7 +212,7 @@ def import_transforms(
         provenance=provenance(
             "import-transforms",
             {"src": str(src), "size": size, "color": color},
-            {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p, _ in sources},
+            {p.name: sha256_file(p) for p, _ in sources},
         ),
         attrs={
             "source": "transforms.json",
