@@ -36,6 +36,9 @@ FALLBACK_NOTICE = (
     "~8x slower (install g++ to get the fast path)"
 )
 BUILD_NOTICE = "dronecap: building C++ kernels (once, ~40 s)"
+# DRONECAP_NO_SIMD=1 builds the kernels without their AVX2/AVX-512 paths (a separate cached
+# build): the scalar baseline benchmarks/train_speed.py compares the SIMD paths with.
+NO_SIMD_ENV = "DRONECAP_NO_SIMD"
 
 _loaded: dict[str, object] = {}
 _said: set[str] = set()
@@ -57,13 +60,19 @@ def _cpu_flags() -> str:
     return next((line for line in text.splitlines() if line.startswith("flags")), "")
 
 
+def _flags(name: str) -> tuple[str, ...]:
+    """Extra compiler flags of kernel ``name`` in this process (KERNELS + :data:`NO_SIMD_ENV`)."""
+    extra = ("-DDRONECAP_NO_SIMD",) if os.environ.get(NO_SIMD_ENV) == "1" else ()
+    return KERNELS[name][1] + extra
+
+
 def cache_key(name: str) -> str:
     """12 hex digits naming a build of kernel ``name``: sha256 of the torch version, Python
     version, the install's torch and source paths, the kernel's C++ source and flags, and the
     CPU flags."""
     import torch
 
-    source, flags = KERNELS[name]
+    source, flags = KERNELS[name][0], _flags(name)
     h = hashlib.sha256()
     # the install's own paths too: torch writes them (torch headers, the source file) into the
     # build commands, so two checkouts sharing a cache folder would rebuild each other's
@@ -90,7 +99,7 @@ def load(name: str):
 
         from torch.utils import cpp_extension
 
-        source, flags = KERNELS[name]
+        source, flags = KERNELS[name][0], _flags(name)
         folder = build_dir(name)
         folder.mkdir(parents=True, exist_ok=True)
         # torch marks a build in progress with a plain `lock` file and waits forever for it to

@@ -10,20 +10,29 @@
 // block's levels in turn so its output rows stay in cache, and reads a row of F = 2 floats as
 // one 64-bit gather lane. Backward scatters into the table; the default splits the work by
 // level, so each thread owns whole disjoint slices of the gradient table and no two threads
-// ever write the same row (race-free without atomics). Two alternatives, kept for the
+// ever write the same row (race-free without atomics). With F = 2 both directions process 8
+// (AVX2+FMA) or 16 (AVX-512) points per instruction; other F use the scalar loops. Two alternatives, kept for the
 // benchmark that chose the default, split by points instead and resolve races with atomics or
 // with per-thread partial tables.
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
 #include <omp.h>
-#ifdef __AVX512F__
+// SIMD paths for F = 2: AVX-512 (16 points), else AVX2 (8 points), else scalar. Building with
+// -DDRONECAP_NO_SIMD keeps the scalar path only (benchmarks/train_speed.py compares them).
+#if defined(__AVX512F__) && !defined(DRONECAP_NO_SIMD)
+#define HG_AVX512 1
+#elif defined(__AVX2__) && defined(__FMA__) && !defined(DRONECAP_NO_SIMD)
+#define HG_AVX2 1
+#endif
+#if defined(HG_AVX512) || defined(HG_AVX2)
 #include <immintrin.h>
 #endif
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <vector>
 
 namespace {
@@ -81,7 +90,7 @@ inline void corners(const float* p, const Level& lv, uint32_t idx[8], float w[8]
   }
 }
 
-#ifdef __AVX512F__
+#ifdef HG_AVX512
 // 16 points at a time with AVX-512, for F = 2 (the configuration every preset uses). Same
 // arithmetic as `corners` (multiply, floor, subtract: no fused multiply-add), so the fractions
 // are bit-identical to the scalar path and to the reference.
@@ -198,15 +207,133 @@ int64_t backward16(const float* x, const float* grad_out, float* gl, int64_t n0,
 }
 #endif
 
+#ifdef HG_AVX2
+// 8 points at a time with AVX2 + FMA (CPUs without AVX-512, e.g. AMD Zen 2/3), for F = 2: the
+// same scheme as the AVX-512 path at half the width. Same arithmetic as `corners` (multiply,
+// floor, subtract), so the fractions and rows are bit-identical to the scalar path.
+struct Lanes8 {
+  __m256i c[3];  // lower corner per axis
+  __m256 f[3];   // fraction per axis
+};
+
+inline Lanes8 locate8(const float* x, const Level& lv) {
+  const __m256i idx3 = _mm256_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21);
+  const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
+  const __m256 scale = _mm256_set1_ps(lv.scale), max_cell = _mm256_set1_ps(lv.max_cell);
+  Lanes8 p;
+  for (int k = 0; k < 3; ++k) {
+    __m256 v = _mm256_i32gather_ps(x + k, idx3, 4);
+    v = _mm256_min_ps(_mm256_max_ps(v, zero), one);  // max(NaN, 0) returns 0
+    const __m256 pos = _mm256_mul_ps(v, scale);
+    const __m256 cell = _mm256_min_ps(_mm256_floor_ps(pos), max_cell);
+    p.f[k] = _mm256_sub_ps(pos, cell);
+    p.c[k] = _mm256_cvttps_epi32(cell);
+  }
+  return p;
+}
+
+template <bool Dense>
+inline void corner8(const Lanes8& p, int i, const Level& lv, __m256i& row, __m256& w) {
+  const __m256i one = _mm256_set1_epi32(1);
+  const __m256i a = (i & 1) ? _mm256_add_epi32(p.c[0], one) : p.c[0];
+  const __m256i b = (i & 2) ? _mm256_add_epi32(p.c[1], one) : p.c[1];
+  const __m256i d = (i & 4) ? _mm256_add_epi32(p.c[2], one) : p.c[2];
+  if (Dense) {
+    const __m256i s = _mm256_set1_epi32(int(lv.stride));
+    row = _mm256_add_epi32(a, _mm256_mullo_epi32(s, _mm256_add_epi32(b, _mm256_mullo_epi32(s, d))));
+  } else {
+    const __m256i h = _mm256_xor_si256(
+        a, _mm256_xor_si256(_mm256_mullo_epi32(b, _mm256_set1_epi32(int(kPrime1))),
+                            _mm256_mullo_epi32(d, _mm256_set1_epi32(int(kPrime2)))));
+    row = _mm256_and_si256(h, _mm256_set1_epi32(int(lv.mask)));
+  }
+  const __m256 one_f = _mm256_set1_ps(1.0f);
+  const __m256 wx = (i & 1) ? p.f[0] : _mm256_sub_ps(one_f, p.f[0]);
+  const __m256 wy = (i & 2) ? p.f[1] : _mm256_sub_ps(one_f, p.f[1]);
+  const __m256 wz = (i & 4) ? p.f[2] : _mm256_sub_ps(one_f, p.f[2]);
+  w = _mm256_mul_ps(_mm256_mul_ps(wx, wy), wz);
+}
+
+// Forward of points [n0, n0 + 8k) of one level; returns the first point left for the scalar tail.
+template <bool Dense>
+int64_t forward8(const float* x, const float* tl, float* out, int64_t n0, int64_t n1,
+                 const Level& lv, int64_t l, int64_t out_dim) {
+  // Rows of F = 2 floats are read as one 64-bit lane: two 4-lane gathers per corner, and the
+  // interleaved (f0, f1) accumulators match the output layout.
+  const __m256i dup_lo = _mm256_setr_epi32(0, 0, 1, 1, 2, 2, 3, 3);
+  const __m256i dup_hi = _mm256_setr_epi32(4, 4, 5, 5, 6, 6, 7, 7);
+  const double* td = reinterpret_cast<const double*>(tl);
+  int64_t s = n0;
+  for (; s + 8 <= n1; s += 8) {
+    const Lanes8 p = locate8(x + 3 * s, lv);
+    __m256 acc_lo = _mm256_setzero_ps(), acc_hi = _mm256_setzero_ps();
+    for (int i = 0; i < 8; ++i) {
+      __m256i row;
+      __m256 w;
+      corner8<Dense>(p, i, lv, row, w);
+      const __m256 lo = _mm256_castpd_ps(_mm256_i32gather_pd(td, _mm256_castsi256_si128(row), 8));
+      const __m256 hi =
+          _mm256_castpd_ps(_mm256_i32gather_pd(td, _mm256_extracti128_si256(row, 1), 8));
+      acc_lo = _mm256_fmadd_ps(_mm256_permutevar8x32_ps(w, dup_lo), lo, acc_lo);
+      acc_hi = _mm256_fmadd_ps(_mm256_permutevar8x32_ps(w, dup_hi), hi, acc_hi);
+    }
+    alignas(32) double pairs[8];  // (f0, f1) of the 8 points, one 64-bit lane each
+    _mm256_store_pd(pairs, _mm256_castps_pd(acc_lo));
+    _mm256_store_pd(pairs + 4, _mm256_castps_pd(acc_hi));
+    for (int j = 0; j < 8; ++j) {
+      std::memcpy(out + (s + j) * out_dim + l * 2, pairs + j, sizeof(double));
+    }
+  }
+  return s;
+}
+
+// Backward of points [n0, n0 + 8k) of one level (rows and products in SIMD, scatter scalar).
+template <bool Dense>
+int64_t backward8(const float* x, const float* grad_out, float* gl, int64_t n0, int64_t n1,
+                  const Level& lv, int64_t l, int64_t out_dim) {
+  const __m256i out_idx =
+      _mm256_mullo_epi32(_mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7), _mm256_set1_epi32(int(out_dim)));
+  alignas(32) int32_t rows[8][8];
+  alignas(32) float v0[8][8], v1[8][8];
+  int64_t s = n0;
+  for (; s + 8 <= n1; s += 8) {
+    const Lanes8 p = locate8(x + 3 * s, lv);
+    const float* g = grad_out + s * out_dim + l * 2;
+    const __m256 g0 = _mm256_i32gather_ps(g, out_idx, 4), g1 = _mm256_i32gather_ps(g + 1, out_idx, 4);
+    for (int i = 0; i < 8; ++i) {
+      __m256i row;
+      __m256 w;
+      corner8<Dense>(p, i, lv, row, w);
+      _mm256_store_si256(reinterpret_cast<__m256i*>(rows[i]), row);
+      _mm256_store_ps(v0[i], _mm256_mul_ps(w, g0));
+      _mm256_store_ps(v1[i], _mm256_mul_ps(w, g1));
+    }
+    for (int j = 0; j < 8; ++j) {
+      for (int i = 0; i < 8; ++i) {
+        float* r = gl + 2 * int64_t(rows[i][j]);
+        r[0] += v0[i][j];
+        r[1] += v1[i][j];
+      }
+    }
+  }
+  return s;
+}
+#endif
+
 template <int F>
 void forward_range(const float* x, const float* table, float* out, int64_t n0, int64_t n1,
                    const Level& lv, int64_t l, int64_t out_dim, int64_t f_rt) {
   const int64_t nf = F > 0 ? F : f_rt;
   const float* tl = table + lv.offset * nf;
-#ifdef __AVX512F__
+#ifdef HG_AVX512
   if (F == 2) {
     n0 = lv.dense ? forward16<true>(x, tl, out, n0, n1, lv, l, out_dim)
                   : forward16<false>(x, tl, out, n0, n1, lv, l, out_dim);
+  }
+#elif defined(HG_AVX2)
+  if (F == 2) {
+    n0 = lv.dense ? forward8<true>(x, tl, out, n0, n1, lv, l, out_dim)
+                  : forward8<false>(x, tl, out, n0, n1, lv, l, out_dim);
   }
 #endif
   uint32_t idx[8];
@@ -227,10 +354,15 @@ void backward_range(const float* x, const float* grad_out, float* grad, int64_t 
                     const Level& lv, int64_t l, int64_t out_dim, int64_t f_rt, bool atomic) {
   const int64_t nf = F > 0 ? F : f_rt;
   float* gl = grad + lv.offset * nf;
-#ifdef __AVX512F__
+#ifdef HG_AVX512
   if (F == 2 && !atomic) {
     n0 = lv.dense ? backward16<true>(x, grad_out, gl, n0, n1, lv, l, out_dim)
                   : backward16<false>(x, grad_out, gl, n0, n1, lv, l, out_dim);
+  }
+#elif defined(HG_AVX2)
+  if (F == 2 && !atomic) {
+    n0 = lv.dense ? backward8<true>(x, grad_out, gl, n0, n1, lv, l, out_dim)
+                  : backward8<false>(x, grad_out, gl, n0, n1, lv, l, out_dim);
   }
 #endif
   uint32_t idx[8];
