@@ -220,8 +220,8 @@ def run_case(name: str, work: Path, frames: int, steps: int, train: bool = True)
                 rec["psnr_ref"], rec["ssim_ref"] = eval_line(out)
         if name == "distortion":
             pinhole_copy(d / "dataset.h5", d / "dataset_pinhole.h5")
-            sh([*train_cmd, "--dataset", str(d / "dataset_pinhole.h5"), "--out",
-                str(d / "runs" / "pinhole")], log)  # fmt: skip
+            sh([*train_cmd, str(d / "dataset_pinhole.h5"), "--out", str(d / "runs" / "pinhole")],
+               log)  # fmt: skip
             m = json.loads((d / "runs" / "pinhole" / "metrics.json").read_text())["test"]
             rec["psnr_ignored"], rec["ssim_ignored"] = m["psnr"], m["ssim"]
     except StopIteration:
