@@ -26,15 +26,14 @@ import dataclasses
 import json
 import os
 import re
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from snapshot import dronecap_command as sh
+from snapshot import rerun_on_snapshot
 
 RESULTS = Path(__file__).parent / "results"
-PY = [sys.executable, "-m", "dronecap.cli"]
 # case -> (simulate flags, kind): "geometric"/"timing" judged on their own test views,
 # "photometric" also against noise-free renders of the test poses
 CASES: dict[str, tuple[list[str], str]] = {
@@ -52,55 +51,6 @@ CASES: dict[str, tuple[list[str], str]] = {
     "aideck (all)": (["--sensor", "aideck"], "all"),
 }
 NOISE_FREE = ["--noise", "0,0", "--exposure-drift", "0"]
-
-
-def snapshot(work: Path) -> None:
-    """Re-run this script on the committed HEAD: unpack it, lay the stage folders out as the
-    dronecap.* packages (pyproject's package-dir) and exec with that tree first on sys.path."""
-    if os.environ.get("DRONECAP_SNAPSHOT"):
-        return
-    repo = Path(__file__).resolve().parents[1]
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, check=True,
-                            capture_output=True, text=True).stdout.strip()  # fmt: skip
-    root = work / f"snapshot-{commit}"
-    if not root.exists():
-        tmp = work / f".snapshot-{os.getpid()}"
-        tmp.mkdir(parents=True)
-        tar = subprocess.run(["git", "archive", "HEAD"], cwd=repo, check=True, capture_output=True)
-        subprocess.run(["tar", "-x", "-C", str(tmp)], input=tar.stdout, check=True)
-        pkg = tmp / "pkg" / "dronecap"
-        pkg.parent.mkdir()
-        (tmp / "dronecap").rename(pkg)
-        for sub in ("capture", "sfm", "datasets", "nerf", "camera", "simulator", "federated",
-                    "gap9"):  # fmt: skip
-            if (tmp / sub).exists():
-                (tmp / sub).rename(pkg / sub)
-        (pkg / "pipelines.yaml").unlink(missing_ok=True)
-        (tmp / "pipelines.yaml").rename(pkg / "pipelines.yaml")
-        try:
-            tmp.rename(root)
-        except OSError:  # another run of this script unpacked the same commit meanwhile
-            subprocess.run(["rm", "-rf", str(tmp)], check=True)
-    env = dict(os.environ, DRONECAP_SNAPSHOT=commit, PYTHONPATH=str(root / "pkg"),
-               DRONECAP_RESULTS=str(RESULTS))  # fmt: skip
-    print(f"running on a snapshot of commit {commit}: {root}", flush=True)
-    os.execve(sys.executable, [sys.executable, str(root / "benchmarks" / "robustness.py"),
-                               *sys.argv[1:]], env)  # fmt: skip
-
-
-def sh(args: list[str], log: Path) -> str:
-    """Run a dronecap command single-threaded; its output goes to ``log``; returns stdout."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", DRONECAP_PROGRESS="off")
-    with open(log, "a") as fh:
-        fh.write(f"$ dronecap {' '.join(args)}\n")
-        fh.flush()
-        t0 = time.perf_counter()
-        p = subprocess.run(PY + args, env=env, capture_output=True, text=True)
-        fh.write(p.stdout + p.stderr + f"[exit {p.returncode}, {time.perf_counter() - t0:.0f} s]\n")
-    if p.returncode != 0:
-        last = (p.stderr.strip() or p.stdout.strip() or "no output").splitlines()[-1]
-        raise RuntimeError(f"dronecap {args[0]} failed: {last[:300]}")
-    return p.stdout
 
 
 def eval_line(out: str) -> tuple[float, float]:
@@ -331,7 +281,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.snapshot:
         args.work.mkdir(parents=True, exist_ok=True)
-        snapshot(args.work)
+        rerun_on_snapshot(args.work, Path(__file__))
     names = [c.strip() for c in args.cases.split(",")]
     if unknown := [c for c in names if c not in CASES]:
         raise SystemExit(f"unknown cases {unknown}; known: {list(CASES)}")

@@ -1,0 +1,76 @@
+"""Run a benchmark on the committed HEAD, and run dronecap commands from a benchmark.
+
+Long benchmarks run on a snapshot of the last commit (``git archive HEAD`` unpacked under the
+benchmark's work folder), not on the shared work tree where edits are in progress: the stage
+folders are laid out as the ``dronecap.*`` packages (pyproject's package-dir) and the script is
+re-executed with that tree first on ``sys.path``. ``dronecap_command`` then runs the CLI of
+whichever tree the script runs on.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
+PACKAGES = ("capture", "sfm", "datasets", "nerf", "camera", "simulator", "federated", "gap9")
+CLI = [sys.executable, "-m", "dronecap.cli"]
+
+
+def rerun_on_snapshot(work: Path, script: Path) -> None:
+    """Re-execute ``script`` (with this process's arguments) on a snapshot of HEAD unpacked in
+    ``work/snapshot-<commit>``; returns only when already running on a snapshot. Results go to
+    the work tree's benchmarks/results (``DRONECAP_RESULTS``)."""
+    if os.environ.get("DRONECAP_SNAPSHOT"):
+        return
+    git = ["git", "-C", str(REPO)]
+    commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], check=True,
+                            capture_output=True, text=True).stdout.strip()  # fmt: skip
+    root = work / f"snapshot-{commit}"
+    if not root.exists():
+        tmp = work / f".snapshot-{os.getpid()}"
+        tmp.mkdir(parents=True)
+        tar = subprocess.run([*git, "archive", "HEAD"], check=True, capture_output=True)
+        subprocess.run(["tar", "-x", "-C", str(tmp)], input=tar.stdout, check=True)
+        pkg = tmp / "pkg" / "dronecap"
+        pkg.parent.mkdir()
+        (tmp / "dronecap").rename(pkg)
+        for sub in PACKAGES:
+            if (tmp / sub).exists():
+                (tmp / sub).rename(pkg / sub)
+        (pkg / "pipelines.yaml").unlink(missing_ok=True)
+        (tmp / "pipelines.yaml").rename(pkg / "pipelines.yaml")
+        try:
+            tmp.rename(root)
+        except OSError:  # another benchmark unpacked the same commit meanwhile
+            subprocess.run(["rm", "-rf", str(tmp)], check=True)
+    env = dict(os.environ, DRONECAP_SNAPSHOT=commit, PYTHONPATH=str(root / "pkg"),
+               DRONECAP_RESULTS=str(RESULTS))  # fmt: skip
+    print(f"running on a snapshot of commit {commit}: {root}", flush=True)
+    here = root / "benchmarks" / script.name
+    os.execve(sys.executable, [sys.executable, str(here), *sys.argv[1:]], env)
+
+
+def dronecap_command(args: list[str], log: Path, cwd: Path | None = None) -> str:
+    """Run ``dronecap ARGS`` single-threaded, its output appended to ``log``; returns stdout.
+
+    The command runs in ``cwd`` (default: the log's folder), never in the repository: ``python
+    -m`` puts its working directory first on ``sys.path``, where the work tree's ``dronecap/``
+    folder would shadow a snapshot. Raises RuntimeError with the command's last output line
+    when it fails."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", DRONECAP_PROGRESS="off")
+    with open(log, "a") as fh:
+        fh.write(f"$ dronecap {' '.join(args)}\n")
+        fh.flush()
+        t0 = time.perf_counter()
+        p = subprocess.run(CLI + args, env=env, capture_output=True, text=True,
+                           cwd=cwd or log.parent)  # fmt: skip
+        fh.write(p.stdout + p.stderr + f"[exit {p.returncode}, {time.perf_counter() - t0:.0f} s]\n")
+    if p.returncode != 0:
+        last = (p.stderr.strip() or p.stdout.strip() or "no output").splitlines()[-1]
+        raise RuntimeError(f"dronecap {args[0]} failed: {last[:300]}")
+    return p.stdout
