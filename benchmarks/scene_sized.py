@@ -30,10 +30,9 @@ import sys
 import time
 from pathlib import Path
 
-from snapshot import dronecap_command, rerun_on_snapshot
+from snapshot import DATA, dronecap_command, rerun_on_snapshot
 
 RESULTS = Path(__file__).parent / "results"
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 LEGO = DATA / "nerf_synthetic_160" / "lego"
 HIMAX = DATA / "himax_hm01b0" / "test_23"
 CONFIGS = ("scene-sized", "tiny-dronerf", "b32k-t14")

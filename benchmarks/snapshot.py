@@ -17,6 +17,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
+# the real data next to the repository (a snapshot lives elsewhere: it inherits this by env)
+DATA = Path(os.environ.get("DRONECAP_DATA", REPO.parent / "shared" / "data"))
 PACKAGES = ("capture", "sfm", "datasets", "nerf", "camera", "simulator", "federated", "gap9")
 CLI = [sys.executable, "-m", "dronecap.cli"]
 
@@ -49,7 +51,7 @@ def rerun_on_snapshot(work: Path, script: Path) -> None:
         except OSError:  # another benchmark unpacked the same commit meanwhile
             subprocess.run(["rm", "-rf", str(tmp)], check=True)
     env = dict(os.environ, DRONECAP_SNAPSHOT=commit, PYTHONPATH=str(root / "pkg"),
-               DRONECAP_RESULTS=str(RESULTS))  # fmt: skip
+               DRONECAP_RESULTS=str(RESULTS), DRONECAP_DATA=str(DATA))  # fmt: skip
     print(f"running on a snapshot of commit {commit}: {root}", flush=True)
     here = root / "benchmarks" / script.name
     os.execve(sys.executable, [sys.executable, str(here), *sys.argv[1:]], env)
