@@ -1,45 +1,23 @@
-"""The ``dronecap`` command line: a table of sub-commands, each imported only when it runs.
+"""The ``dronecap`` command line, generated from the stage registry (:mod:`dronecap.stages`).
 
-Each entry names a module in :mod:`dronecap.commands` that defines
-
-    HELP: str                                    one-line description
-    add_arguments(parser: ArgumentParser) -> None
-    run(args: Namespace) -> int                  exit code
-
-Command modules import only the standard library at module level, so ``dronecap --help`` stays
-fast; torch, pycolmap, open3d and Flower are imported inside ``run``. An :class:`InputError`
-raised anywhere becomes one line on stderr and exit code 1, and so does an OSError of the
-storage (full disk, read-only, a folder in the way: ``dronecap.files.storage_error``); Ctrl-C
-exits with 130.
+Each command's options come from its ``Settings`` dataclass (:func:`dronecap.stage.add_options`);
+the parsed options become a ``Settings`` that :func:`call` hands to the command's ``run``, the same
+call the pipeline runner makes. Command modules import only the standard library at module
+level, so ``dronecap --help`` stays fast; torch, pycolmap, open3d and Flower are imported inside
+``run``. An :class:`InputError` raised anywhere becomes one line on stderr and exit code 1, and so
+does an OSError of the storage (full disk, read-only, a folder in the way:
+``dronecap.files.storage_error``); Ctrl-C exits with 130.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
+import re
 import sys
-from typing import NoReturn
+from collections.abc import Callable
+from typing import Any, NoReturn
 
-# name -> (module, one-line help). The help is repeated here so `--help` imports nothing.
-COMMANDS: dict[str, tuple[str, str]] = {
-    "simulate": ("simulate", "render a synthetic nano-drone flight video with ground truth"),
-    "ingest": ("ingest", "decode a flight video to 160x160 gray, select frames -> frames.h5"),
-    "calibrate": ("calibrate", "calibrate a camera from images or a video of a board"),
-    "sfm": ("sfm", "recover camera poses with COLMAP, normalise and bound -> posed.h5"),
-    "split": ("split", "train/test split of a posed flight -> dataset.h5"),
-    "shard": ("shard", "IID or viewpoint-sector shards, one file per drone -> shards/"),
-    "import-blender": ("import_blender", "NeRF Synthetic 360 scene -> dataset.h5"),
-    "import-transforms": ("import_transforms", "instant-ngp/nerfstudio dataset -> dataset.h5"),
-    "import-colmap": ("import_colmap", "COLMAP sparse model + images -> dataset.h5"),
-    "export-transforms": ("export_transforms", "dataset -> transforms.json + images"),
-    "train": ("train", "train Tiny-DroNeRF on a dataset -> run dir"),
-    "render": ("render", "render views (test poses or an orbit) of a trained run"),
-    "export-geometry": ("export_geometry", "mesh and point cloud (PLY) of a trained run"),
-    "eval": ("eval", "re-evaluate a trained run on its test views (PSNR/SSIM)"),
-    "cost": ("cost", "GAP9 memory/compute/latency/energy report for a configuration"),
-    "federate": ("federate", "FedAvg across drones on Flower"),
-    "run": ("run", "run a pipeline from pipelines.yaml with caching"),
-}
+from dronecap.stages import STAGES, Stage
 
 
 class _HelpWithDefaults(argparse.HelpFormatter):
@@ -55,6 +33,12 @@ class _HelpWithDefaults(argparse.HelpFormatter):
 
 class _OneLineParser(argparse.ArgumentParser):
     """A bad option value is one line (not argparse's usage block) and exit code 2."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        # `--distortion -0.1,0.02`: argparse takes only plain negative numbers ("-0.1") as
+        # values; let comma-separated lists starting with a minus sign be values too.
+        self._negative_number_matcher = re.compile(r"^-\d*\.?\d+(e-?\d+)?(,-?\d*\.?\d+(e-?\d+)?)*$")
 
     def error(self, message: str) -> NoReturn:
         print(f"{self.prog}: error: {message} (see `{self.prog} --help`)", file=sys.stderr)
@@ -80,24 +64,21 @@ def _top_parser() -> argparse.ArgumentParser:
         "-v", "--verbose", action="store_true", help="progress as a line every second, also in logs"
     )
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (_, help_) in COMMANDS.items():
-        sub.add_parser(name, help=help_, add_help=False)
+    for name, stage in STAGES.items():
+        sub.add_parser(name, help=stage.help, add_help=False)
     return p
 
 
-def build_parser(name: str) -> tuple[argparse.ArgumentParser, object]:
-    """The full parser of one sub-command and its module (imports that module)."""
-    module = importlib.import_module(f"dronecap.commands.{COMMANDS[name][0]}")
+def build_parser(name: str) -> tuple[argparse.ArgumentParser, Stage]:
+    """The full parser of one command and its registry entry (imports its module)."""
+    from dronecap.stage import add_options
+
+    stage = STAGES[name]
     p = _OneLineParser(
-        prog=f"dronecap {name}", description=module.HELP, formatter_class=_HelpWithDefaults
+        prog=f"dronecap {name}", description=stage.help, formatter_class=_HelpWithDefaults
     )
-    p.add_argument(
-        "--workdir",
-        default=".",
-        help="workspace folder where inputs/outputs are found by conventional names (default: .)",
-    )
-    module.add_arguments(p)
-    return p, module
+    add_options(p, stage.load()[0])
+    return p, stage
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -105,17 +86,29 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     while argv and argv[0] in VERBOSITY:
         _set_verbosity(VERBOSITY[argv.pop(0)])
-    if not argv or argv[0] not in COMMANDS:
+    if not argv or argv[0] not in STAGES:
         _top_parser().parse_args(argv or ["--help"])
         return 2
-    from dronecap.errors import InputError
+    from dronecap.stage import from_namespace
 
-    parser, module = build_parser(argv[0])
+    parser, stage = build_parser(argv[0])
     args = parser.parse_intermixed_args(argv[1:])
+    return call(stage, lambda cls: from_namespace(cls, args))
+
+
+def call(stage: Stage, settings_of: Callable[[type], Any]) -> int:
+    """Build a command's settings with ``settings_of(Settings)``, check them and run it; the
+    exit code, with every user-facing failure as one line on stderr."""
+    from dronecap.errors import InputError
+    from dronecap.stage import check
+
     try:
-        return int(module.run(args) or 0)
+        settings_cls, run = stage.load()
+        settings = settings_of(settings_cls)
+        check(settings)
+        return int(run(settings) or 0)
     except InputError as err:
-        print(f"dronecap {argv[0]}: error: {err}", file=sys.stderr)
+        print(f"dronecap {stage.name}: error: {err}", file=sys.stderr)
         return 1
     except OSError as err:  # a storage failure outside atomic_output: one line, else a bug
         from dronecap.files import storage_error
@@ -124,21 +117,21 @@ def main(argv: list[str] | None = None) -> int:
         if reason is None:
             raise
         where = f"{err.filename}: " if err.filename else ""
-        print(f"dronecap {argv[0]}: error: {where}{reason}", file=sys.stderr)
+        print(f"dronecap {stage.name}: error: {where}{reason}", file=sys.stderr)
         return 1
     except ModuleNotFoundError as err:
         extra = OPTIONAL_MODULES.get((err.name or "").split(".")[0])
         if extra is None:
             raise
         print(
-            f"dronecap {argv[0]}: error: needs {err.name}, an optional part of dronecap: "
+            f"dronecap {stage.name}: error: needs {err.name}, an optional part of dronecap: "
             f"pip install 'dronecap[{extra}]'",
             file=sys.stderr,
         )
         return 1
     except KeyboardInterrupt:
         print(
-            f"dronecap {argv[0]}: interrupted (outputs written so far are complete)",
+            f"dronecap {stage.name}: interrupted (outputs written so far are complete)",
             file=sys.stderr,
         )
         return 130

@@ -1,6 +1,7 @@
 """The key figure of each stage, read from the files the stage wrote (for summaries/reports).
 
-Each reader is forgiving: a stage whose output lacks the expected file yields "" rather than an
+The registry (:mod:`dronecap.stages`) names each stage's reader. Each reader is forgiving: a
+stage whose output lacks the expected file yields "" rather than an
 error, since the figure is a convenience, not part of the stage's contract.
 """
 
@@ -35,11 +36,13 @@ def _h5_frames(stage_dir: Path, name: str) -> str:
         return f"{f['images'].shape[0]} frames"
 
 
-def _ingest(stage_dir: Path) -> str:
+def ingest(stage_dir: Path) -> str:
+    """Frames kept by ingest."""
     return _h5_frames(stage_dir, "frames.h5") + " kept"
 
 
-def _sfm(stage_dir: Path) -> str:
+def sfm(stage_dir: Path) -> str:
+    """Registration rate and, with ground truth, pose accuracy."""
     rep = _json(_find(stage_dir, "report.json"))
     if not rep:
         return ""
@@ -53,7 +56,8 @@ def _sfm(stage_dir: Path) -> str:
     return text
 
 
-def _train(stage_dir: Path) -> str:
+def train(stage_dir: Path) -> str:
+    """Test PSNR/SSIM and the GAP9 verdict."""
     m = _json(_find(stage_dir, "metrics.json")).get("test") or {}  # None: --no-eval
     text = f"PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}" if "psnr" in m else ""
     cost = _json(_find(stage_dir, "cost.json"))
@@ -66,21 +70,21 @@ def _train(stage_dir: Path) -> str:
     return text
 
 
-def _federate(stage_dir: Path) -> str:
+def federate(stage_dir: Path) -> str:
+    """The global model's last PSNR."""
     rounds = _json(_find(stage_dir, "rounds.json"))
     last = (rounds.get("rounds") or [{}])[-1] if isinstance(rounds, dict) else {}
     return f"global PSNR {last['psnr']:.2f} dB" if "psnr" in last else ""
 
 
-FIGURES: dict[str, Callable[[Path], str]] = {
-    "ingest": _ingest,
-    "sfm": _sfm,
-    "split": lambda d: _h5_frames(d, "dataset.h5"),
-    "import-blender": lambda d: _h5_frames(d, "dataset.h5"),
-    "shard": lambda d: f"{len(list(d.rglob('client_*.h5')))} shards",
-    "train": _train,
-    "federate": _federate,
-}
+def dataset(stage_dir: Path) -> str:
+    """Frames in the dataset written."""
+    return _h5_frames(stage_dir, "dataset.h5")
+
+
+def shards(stage_dir: Path) -> str:
+    """Shard files written."""
+    return f"{len(list(stage_dir.rglob('client_*.h5')))} shards"
 
 
 RESULT_FILES = (
@@ -98,9 +102,8 @@ def results_of(stage_dir: Path) -> list[Path]:
     return [p for name in RESULT_FILES for p in sorted(stage_dir.rglob(name))[:1]]
 
 
-def key_figure(command: str, stage_dir: Path) -> str:
+def key_figure(reader: Callable[[Path], str] | None, stage_dir: Path) -> str:
     """One short text with the stage's headline number ("" when there is none)."""
-    reader = FIGURES.get(command)
     try:
         return reader(stage_dir) if reader else ""
     except (OSError, KeyError, TypeError, ValueError):

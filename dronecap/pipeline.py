@@ -1,40 +1,40 @@
 """The pipeline runner: run a validated pipeline's stages in order, with caching.
 
-Each stage runs the ``dronecap`` command it names, in-process, with ``--workdir
-runs/<pipeline>/<stage>`` so that its outputs land in its own folder. Beside them the runner
-keeps a stamp, ``.dronecap-stage.json``: the cache key (a hash of the command line and of the
+Each stage runs the ``dronecap`` command it names, in-process: its parameters become the
+command's settings (:func:`dronecap.stage.from_params`) with the workspace
+``runs/<pipeline>/<stage>``, so that its outputs land in its own folder, and the command's
+``run`` is called with them (:func:`dronecap.cli.call`). Beside them the runner
+keeps a stamp, ``.dronecap-stage.json``: the cache key (a hash of the parameters and of the
 content of every input file), the parameters, the inputs' hashes, the time taken and the key
 figure. A stage is skipped when its key matches a completed stamp, like ``dvc repro``.
 
 A stage that was interrupted leaves a "running" stamp with its key: run again with the same
 key, it keeps its folder so that a resumable command (``train``) continues from its checkpoint;
 with another key the folder is cleared first. Parameters that only say how to compute
-(:data:`RESOURCE_PARAMS`: threads, progress output) are not part of the key, and a parameter that
-only extends the work (:data:`EXTENDS`: more training ``steps``) keeps the folder, so the trainer
-resumes from its checkpoint instead of starting over.
+(:data:`RESOURCE_PARAMS`: threads, progress output) are not part of the key, and a parameter
+that only extends the work (the registry's ``extends``: more training ``steps``) keeps the
+folder, so the trainer resumes from its checkpoint instead of starting over.
 """
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import shutil
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dronecap import workspace
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, sha256_file
-from dronecap.pipeline_spec import Pipeline, Stage, param_actions, substitute
+from dronecap.pipeline_spec import Pipeline, Stage, substitute
+from dronecap.stages import STAGES
 
 STAMP = ".dronecap-stage.json"
 # Parameters that change how a stage computes, not what it computes: never part of the cache key.
-RESOURCE_PARAMS = frozenset({"threads", "num_threads", "no_progress", "quiet", "checkpoint_every"})
-# command -> parameters whose change only extends the previous output (kept, then resumed).
-EXTENDS: dict[str, frozenset[str]] = {"train": frozenset({"steps"})}
+RESOURCE_PARAMS = frozenset({"threads", "no_progress", "quiet", "checkpoint_every"})
 
 
 @dataclass
@@ -46,34 +46,6 @@ class StageResult:
     why: str
     seconds: float = 0.0
     figure: str = ""
-
-
-def stage_argv(stage: Stage, parser: argparse.ArgumentParser, params: dict[str, Any]) -> list[str]:
-    """The command line (after the command name) that runs ``stage`` with resolved ``params``."""
-    actions = param_actions(parser)
-    positional: list[tuple[int, list[str]]] = []
-    options: list[str] = []
-    order = [a.dest for a in parser._actions if not a.option_strings]
-    for key, value in params.items():
-        action = actions[key]
-        values = [str(v) for v in (value if isinstance(value, list) else [value])]
-        if not action.option_strings:
-            positional.append((order.index(action.dest), values))
-            continue
-        flag = max(action.option_strings, key=len)
-        if isinstance(action, argparse._StoreTrueAction):
-            options += [flag] if value else []
-        elif isinstance(action, argparse._StoreFalseAction):
-            options += [] if value else [flag]
-        elif isinstance(action, argparse._AppendAction):
-            for v in values:
-                options += [flag, v]
-        else:
-            options += [flag, *values]
-    argv: list[str] = []
-    for _, values in sorted(positional):
-        argv += values
-    return argv + options
 
 
 def input_files(params: dict[str, Any]) -> list[Path]:
@@ -119,14 +91,12 @@ class Runner:
     def __init__(
         self,
         pipeline: Pipeline,
-        parsers: dict[str, argparse.ArgumentParser],
         root: Path = Path("runs"),
         force: set[str] | None = None,
         start: str | None = None,
         until: str | None = None,
     ) -> None:
         self.pipeline = pipeline
-        self.parsers = parsers
         self.dir = root / pipeline.name
         self.force = set(force or ())
         ids = pipeline.ids()
@@ -136,16 +106,15 @@ class Runner:
         self.last = ids.index(until) if until else len(ids) - 1
         self.stage_dirs = {sid: self.dir / sid for sid in ids}
 
-    def _plan(self, stage: Stage) -> tuple[dict[str, Any], list[str], dict[str, str], str]:
+    def _plan(self, stage: Stage) -> tuple[dict[str, Any], dict[str, str], str]:
         params = {
             k: substitute(v, self.pipeline.vars, self.stage_dirs) for k, v in stage.params.items()
         }
         hashes = {str(p): sha256_file(p) for p in input_files(params)}
-        folder = workspace.STAGE_FOLDER_OPTION.get(stage.command)
+        folder = STAGES[stage.command].folder
         if folder and folder not in params:
             params[folder] = str(self.stage_dirs[stage.id])
-        argv = stage_argv(stage, self.parsers[stage.command], params)
-        return params, argv, hashes, cache_key(stage.command, params, hashes)
+        return params, hashes, cache_key(stage.command, params, hashes)
 
     def _why(
         self, stage: Stage, stamp: dict[str, Any] | None, params: dict, hashes: dict, key: str
@@ -174,12 +143,13 @@ class Runner:
         if stamp.get("status") != "done":
             return stamp.get("key") == key
         changed = set(_changed(stamp.get("params", {}), params))
-        return bool(changed) and changed <= EXTENDS.get(stage.command, frozenset())
+        return bool(changed) and changed <= STAGES[stage.command].extends
 
     def run(self, dry_run: bool = False) -> list[StageResult]:
         """Run (or with ``dry_run`` only explain) the stages; stops at the first failure."""
-        from dronecap import cli
+        from dronecap.cli import call
         from dronecap.figures import key_figure
+        from dronecap.stage import command_line, from_params
 
         results: list[StageResult] = []
         upstream_runs: set[str] = set()
@@ -194,7 +164,7 @@ class Runner:
                 results.append(StageResult(stage.id, "would run", f"upstream {pending[0]} runs"))
                 upstream_runs.add(stage.id)
                 continue
-            params, argv, hashes, key = self._plan(stage)
+            params, hashes, key = self._plan(stage)
             why = self._why(stage, stamp, params, hashes, key)
             if i < self.first:
                 if why != "up to date":
@@ -216,6 +186,14 @@ class Runner:
             if dry_run:
                 results.append(StageResult(stage.id, "would run", why))
                 continue
+            entry = STAGES[stage.command]
+            try:
+                settings = from_params(entry.load()[0], params, str(sdir))
+            except InputError as err:
+                print(f"dronecap {stage.command}: error: {err}", file=sys.stderr)
+                results.append(StageResult(stage.id, "failed", str(err)))
+                break
+            argv = command_line(settings)
             same_inputs = stamp is not None and stamp.get("inputs") == hashes
             resuming = same_inputs and self._keeps_folder(stage, stamp, params, key)
             if sdir.exists() and not resuming:
@@ -233,12 +211,12 @@ class Runner:
             full = [stage.command, *argv, "--workdir", str(sdir)]
             print(f"\n== stage {stage.id}: dronecap {' '.join(full)}", flush=True)
             t0 = time.perf_counter()
-            code = cli.main(full)
+            code = call(entry, lambda _, s=settings: s)
             seconds = time.perf_counter() - t0
             if code != 0:
                 results.append(StageResult(stage.id, "failed", f"exit code {code}", seconds))
                 break
-            figure = key_figure(stage.command, sdir)
+            figure = key_figure(entry.figure, sdir)
             _write_stamp(sdir, {**record, "status": "done", "seconds": seconds, "figure": figure})
             results.append(StageResult(stage.id, "ran", why, seconds, figure))
         return results

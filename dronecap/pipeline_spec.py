@@ -2,7 +2,8 @@
 
 A pipeline is an ordered mapping of stages. A stage names a ``dronecap`` command (the stage id
 by default) and its parameters, with exactly the names of that command's CLI options (dashes or
-underscores). String values may use ``${var}`` for a pipeline variable and ``${stage}`` for the
+underscores), checked against the command's settings dataclass (:mod:`dronecap.stage`): name,
+type and choices. String values may use ``${var}`` for a pipeline variable and ``${stage}`` for the
 output folder of an earlier stage, which also makes that stage an upstream dependency::
 
     demo:
@@ -17,7 +18,6 @@ stage, cycle) raises :class:`SpecError` naming the file and the line that is wro
 
 from __future__ import annotations
 
-import argparse
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +26,8 @@ from typing import Any
 import yaml
 
 from dronecap.errors import InputError
+from dronecap.stage import missing_params, param_value, params_table
+from dronecap.stages import STAGES
 
 REF = re.compile(r"\$\{([A-Za-z0-9_.-]+)\}")
 
@@ -65,7 +67,7 @@ class Stage:
 
     id: str
     command: str
-    params: dict[str, Any]  # CLI dest -> value, ${...} not yet substituted
+    params: dict[str, Any]  # parameter (option name) -> value, ${...} not yet substituted
     line: int  # line of the stage in the YAML file
     param_lines: dict[str, int] = field(default_factory=dict)
     upstream: list[str] = field(default_factory=list)  # ids of stages it reads from
@@ -108,15 +110,6 @@ def load_specs(path: str | Path) -> LineDict:
     return data
 
 
-def commands_used(specs: LineDict, name: str) -> set[str]:
-    """Names of the commands a pipeline's stages run (unvalidated; for building parsers)."""
-    spec = specs.get(name)
-    stages = spec.get("stages") if isinstance(spec, dict) else None
-    if not isinstance(stages, dict):
-        return set()
-    return {b.get("command", s) if isinstance(b, dict) else s for s, b in stages.items()} - {"run"}
-
-
 def parse_overrides(items: list[str]) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
     """Split ``key=value`` overrides into pipeline vars and ``stage.param`` overrides.
 
@@ -141,16 +134,14 @@ def build_pipeline(
     specs: LineDict,
     name: str,
     path: str | Path,
-    parsers: dict[str, argparse.ArgumentParser],
     overrides: list[str] | None = None,
 ) -> Pipeline:
-    """Validate pipeline ``name`` against the commands' own parsers and apply overrides.
+    """Validate pipeline ``name`` against the commands' settings and apply overrides.
 
     Args:
         specs: the parsed file from :func:`load_specs`.
         name: pipeline to build.
         path: the YAML file, for messages.
-        parsers: command name -> its argparse parser (used to check names and types).
         overrides: ``key=value`` items from the command line.
     """
     if name not in specs:
@@ -185,7 +176,7 @@ def build_pipeline(
             if key not in ("command", "params"):
                 raise SpecError(f"{path}:{body.key_lines[key]}: unknown stage key {key!r}")
         command = body.get("command", stage_id)
-        if command not in parsers:
+        if command not in STAGES or not STAGES[command].pipeline:
             raise SpecError(f"{path}:{line}: unknown stage command {command!r}")
         params_node = body.get("params") or LineDict()
         param_lines = dict(getattr(params_node, "key_lines", {}))
@@ -195,57 +186,36 @@ def build_pipeline(
             params[k] = v
             param_lines.setdefault(k, line)
         stage = Stage(stage_id, command, params, line, param_lines)
-        _check_params(stage, parsers[command], path)
+        _check_params(stage, STAGES[command].load()[0], path)
         _check_refs(stage, vars_, [s.id for s in stages], list(stages_spec), path)
         stages.append(stage)
     return Pipeline(name, stages, vars_, str(spec.get("description", "")))
 
 
-def param_actions(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
-    """The parameters a stage may set: each action by its long option name (``--local-steps``
-    -> ``local_steps``), or by its dest for positionals; ``--help``/``--workdir`` excluded."""
-    table: dict[str, argparse.Action] = {}
-    for a in parser._actions:
-        if a.dest in ("help", "workdir"):
-            continue
-        longs = [o for o in a.option_strings if o.startswith("--")]
-        name = max(longs, key=len)[2:] if longs else a.dest
-        table[name.replace("-", "_")] = a
-    return table
-
-
-def _check_params(stage: Stage, parser: argparse.ArgumentParser, path: str | Path) -> None:
-    actions = param_actions(parser)
+def _check_params(stage: Stage, settings_cls: type, path: str | Path) -> None:
+    table = params_table(settings_cls)
     for key, value in stage.params.items():
         line = stage.param_lines.get(key, stage.line)
-        if key not in actions:
-            known = ", ".join(sorted(actions))
+        if key not in table:
+            known = ", ".join(sorted(table))
             raise SpecError(
                 f"{path}:{line}: stage {stage.id!r}: unknown parameter {key!r} for"
                 f" `dronecap {stage.command}` (known: {known})"
             )
-        action = actions[key]
         if isinstance(value, str) and REF.search(value):
             continue  # checked once substituted
-        if isinstance(action, argparse._StoreTrueAction | argparse._StoreFalseAction):
-            if not isinstance(value, bool):
-                raise SpecError(f"{path}:{line}: parameter {key!r} must be true or false")
-            continue
-        values = value if isinstance(value, list) else [value]
-        for v in values:
-            try:
-                converted = action.type(str(v)) if callable(action.type) else v
-            except (TypeError, ValueError, argparse.ArgumentTypeError):
-                type_name = getattr(action.type, "__name__", str(action.type))
-                raise SpecError(
-                    f"{path}:{line}: parameter {key!r} of stage {stage.id!r} must be"
-                    f" {type_name}, got {v!r}"
-                ) from None
-            if action.choices is not None and converted not in action.choices:
-                raise SpecError(
-                    f"{path}:{line}: parameter {key!r} must be one of {list(action.choices)},"
-                    f" got {v!r}"
-                )
+        try:
+            param_value(table[key], value)
+        except ValueError as err:
+            raise SpecError(
+                f"{path}:{line}: parameter {key!r} of stage {stage.id!r} {err}"
+            ) from None
+    missing = missing_params(settings_cls, set(stage.params))
+    if missing:
+        raise SpecError(
+            f"{path}:{stage.line}: stage {stage.id!r} needs parameter {missing[0]!r} for"
+            f" `dronecap {stage.command}`"
+        )
 
 
 def _check_refs(

@@ -17,12 +17,7 @@ SHARDS = "shards"  # shard -> federate (one client_K.h5 per drone)
 SFM_DIR = "sfm"  # sparse model, PLY, report beside posed.h5
 TRAIN_RUN = "runs/train"  # train -> render, eval, cost
 FEDERATE_RUN = "runs/federate"
-
-
-# In a pipeline every stage has a folder of its own (runs/<pipeline>/<stage>/); the stages whose
-# outputs are folders write straight into it (runs/demo/train/, not runs/demo/train/runs/train/).
-# command -> the option that names its output folder.
-STAGE_FOLDER_OPTION = {"sfm": "sfm_dir", "train": "out", "federate": "out"}
+TRANSFORMS = "transforms"  # export-transforms
 
 
 def resolve(workdir: str | Path | None, explicit: str | Path | None, default: str) -> Path:

@@ -1,7 +1,8 @@
 """Trainer settings: one dataclass, and the named presets of the paper's Table II in one registry.
 
 Every field is overridable from the CLI (``dronecap train --set field=value`` or the generated
-``--field`` options) and from ``pipelines.yaml``; :func:`apply_sets` is the one ``--set`` parser
+``--field`` options; ``train`` leaves out :data:`DATA_FIELDS`, which its dataset decides) and
+from ``pipelines.yaml``; :func:`apply_sets` is the one ``--set`` parser
 (the GAP9 cost model's ``--set`` uses it too) and :func:`config_from_dict` the one way back from
 JSON. :func:`problems` range-checks every field before any work starts. The trainer never uses
 a config as given: :func:`dronecap.nerf.resolve.resolve` fills in what its dataset decides
@@ -125,6 +126,7 @@ TABLE2_ROWS: list[str] = ["instant-ngp"] + [
 
 DEFAULT_PRESET = "scene-sized"
 SIZED_FIELDS = ("n_max", "march_steps", "grid_res", "log2_hashmap")  # what `sized` decides
+DATA_FIELDS = ("resolution", "train_images", "channels")  # what resolving against data sets
 
 
 def preset(name: str) -> TrainConfig:
@@ -280,44 +282,14 @@ def problems(cfg: TrainConfig) -> list[str]:
     return out
 
 
-def add_config_arguments(parser: Any) -> None:
-    """Add ``--preset``, ``--set k=v`` and one ``--field-name VALUE`` option per TrainConfig
-    field to an argparse parser (options default to "not given")."""
-    parser.add_argument(
-        "--preset", default=DEFAULT_PRESET, help=f"named configuration: {', '.join(PRESETS)}"
-    )
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="FIELD=VALUE",
-        help="override any configuration field (repeatable)",
-    )
-    group = parser.add_argument_group("configuration fields (override the preset)")
-    for f in dataclasses.fields(TrainConfig):
-        group.add_argument(
-            "--" + f.name.replace("_", "-"),
-            dest=f"cfg_{f.name}",
-            default=None,
-            metavar="V",
-            help=f"{f.name} (preset value otherwise)",
-        )
-
-
-def config_from_args(args: Any) -> TrainConfig:
-    """The TrainConfig that :func:`add_config_arguments` options describe (ValueError/KeyError
-    on unknown presets, fields or unparsable values; not range-checked: see :func:`problems`)."""
-    cfg = apply_sets(preset(args.preset), args.set)
-    changes: dict[str, Any] = {}
-    for f in dataclasses.fields(TrainConfig):
-        text = getattr(args, f"cfg_{f.name}", None)
-        if text is not None:
-            changes[f.name] = parse_field(f.name, text)
-    cfg = cfg.replace(**changes)
+def config_from_overrides(name: str, sets: list[str], fields: dict[str, Any]) -> TrainConfig:
+    """Preset ``name`` with ``--set FIELD=VALUE`` assignments, then ``fields`` (values already
+    parsed, e.g. from ``--steps 3000``) applied; with ``sized``, the sizing keeps the sized fields
+    given here (ValueError/KeyError on unknown presets, fields or unparsable values; not
+    range-checked: see :func:`problems`)."""
+    cfg = apply_sets(preset(name), sets).replace(**fields)
     if cfg.sized:  # what the user set, the sizing keeps
-        given = {item.split("=", 1)[0].strip().replace("-", "_") for item in args.set} | set(
-            changes
-        )
+        given = {item.split("=", 1)[0].strip().replace("-", "_") for item in sets} | set(fields)
         keep = [k for k in cfg.sized_keep.split(",") if k] + sorted(given & set(SIZED_FIELDS))
         cfg = cfg.replace(sized_keep=",".join(dict.fromkeys(keep)))
     return cfg

@@ -9,57 +9,55 @@ what ``dronecap ingest --intrinsics`` reads (see docs/camera.md).
 
 from __future__ import annotations
 
-import argparse
 import sys
+from dataclasses import dataclass
 
-HELP = "calibrate a camera from images or a video of a board"
+from dronecap.camera.calibrate import MAX_VIEW_ERROR_PX, MODELS
+from dronecap.camera.targets import PATTERNS, SUBPIX_WINDOW
+from dronecap.camera.views import MAX_VIEWS
+from dronecap.stage import Settings as Base
+from dronecap.stage import setting
+
 OUTPUT = "calib.json"  # default output, in the workspace
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of the command."""
-    from dronecap.camera.calibrate import MAX_VIEW_ERROR_PX, MODELS
-    from dronecap.camera.targets import PATTERNS, SUBPIX_WINDOW
-    from dronecap.camera.views import MAX_VIEWS
+@dataclass(kw_only=True)
+class Settings(Base):
+    """Options of ``dronecap calibrate``."""
 
-    p.add_argument("images", nargs="*", help="calibration images: files, folders or globs")
-    p.add_argument("--video", help="a video of the board instead of images")
-    p.add_argument("--pattern", required=True, choices=PATTERNS, help="board type")
-    p.add_argument(
-        "--board",
-        required=True,
-        help="WxH: inner corners (chessboard), squares (charuco) or markers (aruco-grid)",
+    images: list[str] = setting(
+        factory=list, positional=True, help="calibration images: files, folders or globs"
     )
-    p.add_argument("--square", type=float, default=1.0, help="square side (board units)")
-    p.add_argument("--marker", type=float, help="marker side (charuco, aruco-grid)")
-    p.add_argument("--gap", type=float, help="space between markers (aruco-grid)")
-    p.add_argument("--dictionary", default="DICT_6X6_250", help="ArUco dictionary")
-    p.add_argument("--model", default="pinhole", choices=MODELS, help="lens model")
-    p.add_argument(
-        "--subpix-window",
-        type=int,
-        default=SUBPIX_WINDOW,
+    video: str | None = setting(None, help="a video of the board instead of images")
+    pattern: str = setting(choices=PATTERNS, help="board type")
+    board: str = setting(
+        help="WxH: inner corners (chessboard), squares (charuco) or markers (aruco-grid)"
+    )
+    square: float = setting(1.0, help="square side (board units)")
+    marker: float | None = setting(None, help="marker side (charuco, aruco-grid)")
+    gap: float | None = setting(None, help="space between markers (aruco-grid)")
+    dictionary: str = setting("DICT_6X6_250", help="ArUco dictionary")
+    model: str = setting("pinhole", choices=MODELS, help="lens model")
+    subpix_window: int = setting(
+        SUBPIX_WINDOW,
         help="chessboard corner refinement half-window (px); 0: 0.4 x the corner spacing, for "
         "small boards in small images",
     )
-    p.add_argument(
-        "--max-views", type=int, default=MAX_VIEWS, help="most views taken from a --video"
+    max_views: int = setting(MAX_VIEWS, help="most views taken from a --video")
+    max_view_error: float = setting(
+        MAX_VIEW_ERROR_PX, help="reject views whose RMS error exceeds this (px) and 3x the median"
     )
-    p.add_argument(
-        "--max-view-error",
-        type=float,
-        default=MAX_VIEW_ERROR_PX,
-        help="reject views whose RMS error exceeds this (px) and 3x the median",
-    )
-    p.add_argument(
-        "-o",
-        "--output",
+    output: str | None = setting(
+        None,
+        short="-o",
         help=f"calibration JSON, or .yml/.xml for OpenCV's format (default: WORKDIR/{OUTPUT})",
     )
-    p.add_argument("--plot", help="also write a PNG of the corner coverage and per-view errors")
+    plot: str | None = setting(
+        None, help="also write a PNG of the corner coverage and per-view errors"
+    )
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: Settings) -> int:
     """Validate every option, find the board, calibrate, write the outputs."""
     from dronecap import workspace
     from dronecap.camera.calibrate import MIN_VIEWS, calibrate, find_boards
@@ -107,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _board(args: argparse.Namespace):
+def _board(args: Settings):
     """The Board of the options, or InputError naming the bad one."""
     from dronecap.camera.targets import Board
     from dronecap.errors import InputError

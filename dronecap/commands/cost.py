@@ -9,55 +9,50 @@ dronecap cost --search --budget-l3 32MB [--budget-l2 1.5MB] [--budget-l1 128kB]
 
 from __future__ import annotations
 
-import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
-HELP = "GAP9 memory/compute/latency/energy report for a configuration"
+from dronecap.stage import Settings as Base
+from dronecap.stage import setting
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of the command."""
-    p.add_argument(
-        "run_dir",
-        nargs="?",
+@dataclass(kw_only=True)
+class Settings(Base):
+    """Options of ``dronecap cost``."""
+
+    run_dir: str | None = setting(
+        None,
+        positional=True,
         help="a training run dir (its run.json gives the resolved configuration that was trained)",
     )
-    p.add_argument("--preset", help="a named preset (default: tiny-dronerf)")
-    p.add_argument("--platform", help="platform YAML (default: the shipped gap9/gap9.yaml)")
-    p.add_argument(
-        "--set",
-        dest="sets",
-        action="append",
-        default=[],
+    preset: str | None = setting(None, help="a named preset (default: tiny-dronerf)")
+    platform: str | None = setting(None, help="platform YAML (default: the shipped gap9/gap9.yaml)")
+    set: list[str] = setting(
+        factory=list,
+        repeat=True,
         metavar="FIELD=VALUE",
         help="override a TrainConfig field (repeatable)",
     )
-    p.add_argument(
-        "--json",
-        help="write the report here (default: RUN_DIR/cost.json, else WORKDIR/cost.json)",
+    json: str | None = setting(
+        None, help="write the report here (default: RUN_DIR/cost.json, else WORKDIR/cost.json)"
     )
-    p.add_argument("--spp", type=float, default=13.0, help="samples per ray/pixel (default 13)")
-    p.add_argument("--images", type=int, help="training images stored aboard (default: config)")
-    p.add_argument(
-        "--table2", action="store_true", help="compare the model with the paper's Table II"
-    )
-    p.add_argument("--search", action="store_true", help="list configurations fitting budgets")
-    p.add_argument("--budget-l3", help="untiled footprint budget, e.g. 32MB (search)")
-    p.add_argument("--budget-l2", help="L2 peak budget, e.g. 1.5MB (search)")
-    p.add_argument("--budget-l1", help="L1 budget incl. stacks, e.g. 128kB (search)")
-    p.add_argument("--runs", nargs="*", default=[], help="metrics.json files of measured runs")
-    p.add_argument("--plot", help="Pareto PNG (default: WORKDIR/pareto.png)")
-    p.add_argument("--top", type=int, default=25, help="configurations listed by --search")
-    p.add_argument(
-        "--tolerance-db",
-        type=float,
-        default=0.25,
-        help="chosen = smallest footprint within this many dB of the best fitting PSNR",
+    spp: float = setting(13.0, help="samples per ray/pixel (default 13)")
+    images: int | None = setting(None, help="training images stored aboard (default: config)")
+    table2: bool = setting(False, help="compare the model with the paper's Table II")
+    search: bool = setting(False, help="list configurations fitting budgets")
+    budget_l3: str | None = setting(None, help="untiled footprint budget, e.g. 32MB (search)")
+    budget_l2: str | None = setting(None, help="L2 peak budget, e.g. 1.5MB (search)")
+    budget_l1: str | None = setting(None, help="L1 budget incl. stacks, e.g. 128kB (search)")
+    runs: list[str] = setting(factory=list, help="metrics.json files of measured runs")
+    plot: str | None = setting(None, help="Pareto PNG (default: WORKDIR/pareto.png)")
+    top: int = setting(25, help="configurations listed by --search")
+    tolerance_db: float = setting(
+        0.25, help="chosen = smallest footprint within this many dB of the best fitting PSNR"
     )
 
 
-def _platform(args: argparse.Namespace):
+def _platform(args: Settings):
     from dronecap.errors import InputError
     from dronecap.gap9.platform import load_platform
 
@@ -71,7 +66,7 @@ def _platform(args: argparse.Namespace):
         raise InputError(str(err), args.platform) from err
 
 
-def _config(args: argparse.Namespace):
+def _config(args: Settings):
     """(TrainConfig, default JSON path) from RUN_DIR (the resolved configuration it was
     trained with), --preset or the default preset, + --set."""
     from dronecap import workspace
@@ -94,14 +89,14 @@ def _config(args: argparse.Namespace):
             raise InputError(str(err.args[0])) from err
         default_out = workspace.resolve(args.workdir, None, "cost.json")
     try:
-        cfg = apply_sets(cfg, args.sets)
+        cfg = apply_sets(cfg, args.set)
     except (ValueError, TypeError) as err:
         raise InputError(str(err)) from err
     check_config(cfg)
     return cfg, default_out
 
 
-def _check_options(args: argparse.Namespace) -> None:
+def _check_options(args: Settings) -> None:
     """Range-check the numeric options before any work (one line each)."""
     import math
 
@@ -143,7 +138,7 @@ def _bytes(text: str | None, flag: str) -> int | None:
         raise InputError(f"{flag}: {err}") from err
 
 
-def _report(args: argparse.Namespace) -> int:
+def _report(args: Settings) -> int:
     from dronecap.errors import InputError
     from dronecap.files import atomic_output
     from dronecap.gap9.model import cost_report, format_report
@@ -161,7 +156,7 @@ def _report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _table2(args: argparse.Namespace) -> int:
+def _table2(args: Settings) -> int:
     from dronecap.gap9.paper import table2
 
     rows = table2(_platform(args))
@@ -178,7 +173,7 @@ def _table2(args: argparse.Namespace) -> int:
     return 0
 
 
-def _search(args: argparse.Namespace) -> int:
+def _search(args: Settings) -> int:
     from dronecap import workspace
     from dronecap.errors import InputError
     from dronecap.gap9.search import (
@@ -231,7 +226,7 @@ def _search(args: argparse.Namespace) -> int:
     return 0
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: Settings) -> int:
     """Print the report (or the Table II comparison, or the search) and write its outputs."""
     _check_options(args)
     if args.table2:

@@ -2,23 +2,30 @@
 
 from __future__ import annotations
 
-import argparse
+from dataclasses import dataclass
 
-HELP = "dataset -> nerfstudio/instant-ngp transforms.json, PNG images, coloured PLY, COLMAP model"
+from dronecap.stage import Settings as Base
+from dronecap.stage import setting
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of the command."""
-    p.add_argument("input", nargs="?", help="dataset to export (default: WORKDIR/dataset.h5)")
-    p.add_argument("-o", "--output", help="folder to write (default: WORKDIR/transforms)")
-    p.add_argument(
-        "--sparse-model",
+@dataclass(kw_only=True)
+class Settings(Base):
+    """Options of ``dronecap export-transforms``."""
+
+    input: str | None = setting(
+        None, positional=True, help="dataset to export (default: WORKDIR/dataset.h5)"
+    )
+    output: str | None = setting(
+        None, short="-o", help="folder to write (default: WORKDIR/transforms)"
+    )
+    sparse_model: str | None = setting(
+        None,
         help="the COLMAP model the poses came from, for the coloured sparse cloud and the "
         "COLMAP observations (default: WORKDIR/sfm/model when it matches the dataset)",
     )
 
 
-def run(args: argparse.Namespace) -> int:
+def run(s: Settings) -> int:
     """Export and say where."""
     import sys
 
@@ -26,10 +33,10 @@ def run(args: argparse.Namespace) -> int:
     from dronecap.datasets.export import export_transforms
     from dronecap.errors import InputError
 
-    src = workspace.resolve(args.workdir, args.input, workspace.DATASET)
-    out = workspace.resolve(args.workdir, args.output, "transforms")
-    model = args.sparse_model
-    default_model = workspace.resolve(args.workdir, None, workspace.SFM_DIR) / "model"
+    src = workspace.resolve(s.workdir, s.input, workspace.DATASET)
+    out = workspace.resolve(s.workdir, s.output, workspace.TRANSFORMS)
+    model = s.sparse_model
+    default_model = workspace.resolve(s.workdir, None, workspace.SFM_DIR) / "model"
     found = default_model if default_model.is_dir() else None
     try:
         res = export_transforms(src, out, model or found)
@@ -39,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"note: {default_model} not used ({err}); exporting without sparse points",
               file=sys.stderr)  # fmt: skip
         res = export_transforms(src, out, None)
-    splits = ", ".join(f"{n} {s}" for s, n in res.split_counts.items()) or "no split"
+    splits = ", ".join(f"{n} {k}" for k, n in res.split_counts.items()) or "no split"
     print(f"wrote {out / 'transforms.json'}: {res.frames} frames ({splits}), images in {out}")
     if res.split_files:
         print(f"instant-ngp: {', '.join(res.split_files)} (give it transforms_train.json)")

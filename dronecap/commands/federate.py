@@ -2,70 +2,13 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
-HELP = "FedAvg across drones on Flower"
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of ``dronecap federate``."""
-    p.add_argument(
-        "input",
-        nargs="?",
-        help="dataset.h5 (sharded here into RUN/shards) or a shards/ folder of client_K.h5 "
-        "(default: the workspace's shards/)",
-    )
-    p.add_argument("--clients", type=int, default=4, help="drones K (default 4)")
-    p.add_argument("--scheme", choices=("iid", "sector"), default="iid", help="sharding scheme")
-    p.add_argument("--pretrain", type=int, default=10_000, help="coordinator's N_pt steps")
-    p.add_argument("--local-steps", type=int, default=1000, help="N_l steps per drone per round")
-    p.add_argument("--rounds", type=int, default=5, help="communication rounds R")
-    p.add_argument("--preset", default="tiny-dronerf", help="trainer preset (nerf/config.py)")
-    p.add_argument("--exchange-grid", action="store_true", help="also average the occupancy grids")
-    p.add_argument("--transfer-dtype", choices=("fp32", "fp16"), default="fp32")
-    p.add_argument(
-        "--compress",
-        action="store_true",
-        help="send every array losslessly compressed (byte shuffle + deflate; ~14%% smaller "
-        "fp16 updates)",
-    )
-    p.add_argument(
-        "--server-lr",
-        type=float,
-        default=1.0,
-        help="FedAvgM server step size on the averaged update (default 1: plain FedAvg)",
-    )
-    p.add_argument(
-        "--server-momentum", type=float, default=0.0, help="FedAvgM server momentum (default 0)"
-    )
-    p.add_argument(
-        "--baselines",
-        action="store_true",
-        help="also train centralized and single-drone baselines on the same step budget",
-    )
-    p.add_argument("--eval-views", type=int, default=0, help="test views per round (0: all)")
-    p.add_argument("--round-timeout", type=float, default=3600.0, help="seconds per round (>= 1)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument(
-        "--fail-client",
-        type=_client_or_all,
-        default=-1,
-        help="fault injection: this drone raises in --fail-round (left out of that average); "
-        "'all': every drone does (the run stops with an error)",
-    )
-    p.add_argument("--fail-round", type=int, default=-1)
-    p.add_argument(
-        "--deployment",
-        action="store_true",
-        help="do not simulate: prepare --out for deployment mode (a SuperLink and one SuperNode "
-        "per drone) and print the commands that run it",
-    )
-    p.add_argument("--superlink-port", type=int, default=8000, help="with --deployment")
-    p.add_argument("--restart", action="store_true", help="discard an existing run in --out")
-    p.add_argument("--out", help="run folder (default: runs/federate in the workspace)")
+from dronecap.stage import Settings as Base
+from dronecap.stage import setting
 
 
 def _client_or_all(text: str) -> int:
@@ -73,32 +16,62 @@ def _client_or_all(text: str) -> int:
     return -2 if text == "all" else int(text)  # -2: federated.run.EVERY_CLIENT
 
 
-# option -> (minimum, maximum or None), checked before any work
-LIMITS = {
-    "clients": (1, None),
-    "pretrain": (0, None),
-    "local_steps": (1, None),
-    "rounds": (1, None),
-    "eval_views": (0, None),
-    "round_timeout": (1.0, None),
-    "seed": (0, None),
-    "server_lr": (1e-6, None),
-    "server_momentum": (0.0, 0.999),
-    "fail_client": (-2, None),
-    "fail_round": (-1, None),
-    "superlink_port": (1, 65535),
-}
+@dataclass(kw_only=True)
+class Settings(Base):
+    """Options of ``dronecap federate``."""
+
+    input: str | None = setting(
+        None,
+        positional=True,
+        help="dataset.h5 (sharded here into RUN/shards) or a shards/ folder of client_K.h5 "
+        "(default: the workspace's shards/)",
+    )
+    clients: int = setting(4, minimum=1, help="drones K (default 4)")
+    scheme: str = setting("iid", choices=("iid", "sector"), help="sharding scheme")
+    pretrain: int = setting(10_000, minimum=0, help="coordinator's N_pt steps")
+    local_steps: int = setting(1000, minimum=1, help="N_l steps per drone per round")
+    rounds: int = setting(5, minimum=1, help="communication rounds R")
+    preset: str = setting("tiny-dronerf", help="trainer preset (nerf/config.py)")
+    exchange_grid: bool = setting(False, help="also average the occupancy grids")
+    transfer_dtype: str = setting("fp32", choices=("fp32", "fp16"), help="dtype of the arrays sent")
+    compress: bool = setting(
+        False,
+        help="send every array losslessly compressed (byte shuffle + deflate; ~14%% smaller "
+        "fp16 updates)",
+    )
+    server_lr: float = setting(
+        1.0,
+        minimum=1e-6,
+        help="FedAvgM server step size on the averaged update (default 1: plain FedAvg)",
+    )
+    server_momentum: float = setting(
+        0.0, minimum=0.0, maximum=0.999, help="FedAvgM server momentum (default 0)"
+    )
+    baselines: bool = setting(
+        False, help="also train centralized and single-drone baselines on the same step budget"
+    )
+    eval_views: int = setting(0, minimum=0, help="test views per round (0: all)")
+    round_timeout: float = setting(3600.0, minimum=1.0, help="seconds per round (>= 1)")
+    seed: int = setting(0, minimum=0, help="random seed")
+    fail_client: int = setting(
+        -1,
+        minimum=-2,
+        parse=_client_or_all,
+        help="fault injection: this drone raises in --fail-round (left out of that average); "
+        "'all': every drone does (the run stops with an error)",
+    )
+    fail_round: int = setting(-1, minimum=-1, help="the round --fail-client fails in")
+    deployment: bool = setting(
+        False,
+        help="do not simulate: prepare --out for deployment mode (a SuperLink and one SuperNode "
+        "per drone) and print the commands that run it",
+    )
+    superlink_port: int = setting(8000, minimum=1, maximum=65535, help="with --deployment")
+    restart: bool = setting(False, help="discard an existing run in --out")
+    out: str | None = setting(None, help="run folder (default: runs/federate in the workspace)")
 
 
-def check_options(args: argparse.Namespace) -> None:
-    """Raise InputError (one line) for any option out of its range (:data:`LIMITS`)."""
-    from dronecap.errors import check_option
-
-    for name, (lo, hi) in LIMITS.items():
-        check_option(f"--{name.replace('_', '-')}", getattr(args, name), lo, hi)
-
-
-def run(args: argparse.Namespace) -> int:
+def run(args: Settings) -> int:
     """Shard if needed, run (or resume) the federation, the baselines, and the plot."""
     import dataclasses
 
@@ -107,7 +80,6 @@ def run(args: argparse.Namespace) -> int:
     from dronecap.files import sha256_file
     from dronecap.nerf.config import preset
 
-    check_options(args)
     out = workspace.resolve(args.workdir, args.out, workspace.FEDERATE_RUN).resolve()
     src = workspace.resolve(args.workdir, args.input, workspace.SHARDS)
     if not src.exists():
@@ -178,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _shards(src: Path, out: Path, args: argparse.Namespace) -> list[Path]:
+def _shards(src: Path, out: Path, args: Settings) -> list[Path]:
     """The drones' shard files: those of a shards/ folder, or new ones cut from a dataset."""
     from dronecap.errors import InputError
 

@@ -2,28 +2,29 @@
 
 from __future__ import annotations
 
-import argparse
+from dataclasses import dataclass
 
-HELP = "COLMAP sparse model (sparse/0) + images folder -> dataset.h5"
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of the command."""
-    p.add_argument("model", help="COLMAP model folder (cameras/images/points3D .bin or .txt)")
-    p.add_argument("images", help="folder the model's image names are relative to")
-    from dronecap.commands.import_transforms import add_import_options
-
-    add_import_options(p)
+from dronecap.commands.import_transforms import ImportOptions
+from dronecap.stage import setting
 
 
-def run(args: argparse.Namespace) -> int:
+@dataclass(kw_only=True)
+class Settings(ImportOptions):
+    """Options of ``dronecap import-colmap``."""
+
+    model: str = setting(
+        positional=True, help="COLMAP model folder (cameras/images/points3D .bin or .txt)"
+    )
+    images: str = setting(positional=True, help="folder the model's image names are relative to")
+
+
+def run(s: Settings) -> int:
     """Import and print what was stored."""
     from dronecap import workspace
     from dronecap.datasets.import_colmap import import_colmap
     from dronecap.datasets.import_scene import check_options, describe
 
-    check_options(args.size, args.color)
-    out = workspace.resolve(args.workdir, args.output, workspace.DATASET)
-    path = import_colmap(args.model, args.images, out, size=args.size, color=args.color)
-    print(describe(path))
+    check_options(s.size, s.color)
+    out = workspace.resolve(s.workdir, s.output, workspace.DATASET)
+    print(describe(import_colmap(s.model, s.images, out, size=s.size, color=s.color)))
     return 0

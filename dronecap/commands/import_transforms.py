@@ -2,39 +2,44 @@
 
 from __future__ import annotations
 
-import argparse
+from dataclasses import dataclass
 
-HELP = "instant-ngp / nerfstudio transforms.json dataset (folder or .json) -> dataset.h5"
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of the command."""
-    p.add_argument(
-        "source",
-        help="folder with transforms.json or transforms_{train,val,test}.json, or a .json file",
-    )
-    add_import_options(p)
+from dronecap.stage import Settings as Base
+from dronecap.stage import setting
 
 
-def add_import_options(p: argparse.ArgumentParser) -> None:
+@dataclass(kw_only=True)
+class ImportOptions(Base):
     """The options every scene importer shares: output, stored width, colour."""
-    p.add_argument("-o", "--output", help="dataset to write (default: WORKDIR/dataset.h5)")
-    p.add_argument("--size", type=int, default=160, help="stored image width in pixels")
-    p.add_argument(
-        "--color",
+
+    output: str | None = setting(
+        None, short="-o", help="dataset to write (default: WORKDIR/dataset.h5)"
+    )
+    size: int = setting(160, help="stored image width in pixels")
+    color: str = setting(
+        "auto",
         choices=("auto", "rgb", "gray"),
-        default="auto",
         help="stored colour; auto: gray when every image is gray",
     )
 
 
-def run(args: argparse.Namespace) -> int:
+@dataclass(kw_only=True)
+class Settings(ImportOptions):
+    """Options of ``dronecap import-transforms``."""
+
+    source: str = setting(
+        positional=True,
+        help="folder with transforms.json or transforms_{train,val,test}.json, or a .json file",
+    )
+
+
+def run(s: Settings) -> int:
     """Import and print what was stored."""
     from dronecap import workspace
     from dronecap.datasets.import_scene import check_options, describe
     from dronecap.datasets.import_transforms import import_transforms
 
-    check_options(args.size, args.color)
-    out = workspace.resolve(args.workdir, args.output, workspace.DATASET)
-    print(describe(import_transforms(args.source, out, size=args.size, color=args.color)))
+    check_options(s.size, s.color)
+    out = workspace.resolve(s.workdir, s.output, workspace.DATASET)
+    print(describe(import_transforms(s.source, out, size=s.size, color=s.color)))
     return 0

@@ -10,91 +10,84 @@ re-selected frames when all of them are stored.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-HELP = "flight video or drone capture folder (+ telemetry) -> 160x160 gray selected frames.h5"
+from dronecap.capture.selection import SelectionParams
+from dronecap.stage import Settings as Base
+from dronecap.stage import flatten, setting
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of the command (selection flags are generated from SelectionParams)."""
-    from dronecap.capture.selection import SelectionParams
+@dataclass(kw_only=True)
+class Settings(Base):
+    """Options of ``dronecap ingest`` (the selection's are SelectionParams' fields)."""
 
-    p.add_argument("source", nargs="?", help="video file or folder of images")
-    p.add_argument("-o", "--output", help="output frames file (default: WORKDIR/frames.h5)")
-    p.add_argument("--size", default="160", help="output size, '160' or 'WxH' (default: 160)")
-    p.add_argument(
-        "--crop",
-        default="center",
+    source: str | None = setting(None, positional=True, help="video file or folder of images")
+    output: str | None = setting(
+        None, short="-o", help="output frames file (default: WORKDIR/frames.h5)"
+    )
+    size: str = setting("160", help="output size, '160' or 'WxH' (default: 160)")
+    crop: str = setting(
+        "center",
         help="'center' (crop to the output aspect, default), 'stretch', or 'X,Y,W,H' in source px",
     )
-    p.add_argument(
-        "--intrinsics",
+    intrinsics: str | None = setting(
+        None,
         help="source camera: 'fx,fy,cx,cy' (source pixels), a `dronecap calibrate` JSON, an "
         "OpenCV YAML/XML calibration or the simulator's flight.json (distortion is kept); "
         "default: SOURCE_STEM.json beside the video if it has intrinsics; 'none' to ignore it",
     )
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate of an image folder")
-    p.add_argument(
-        "--allow-truncated",
-        action="store_true",
-        help="ingest the frames a truncated video still holds instead of failing",
+    fps: float = setting(30.0, help="frame rate of an image folder")
+    allow_truncated: bool = setting(
+        False, help="ingest the frames a truncated video still holds instead of failing"
     )
-    p.add_argument(
-        "--skip-unreadable",
-        action="store_true",
-        help="drop image files that do not decode instead of failing",
+    skip_unreadable: bool = setting(
+        False, help="drop image files that do not decode instead of failing"
     )
-    p.add_argument(
-        "--telemetry",
+    telemetry: str | None = setting(
+        None,
         metavar="CSV",
         help="telemetry CSV of an image folder (default: the capture folder's metadata.csv, "
         "state.csv or a CSV with known columns; see docs/capture.md)",
     )
-    p.add_argument(
-        "--columns",
+    columns: str | None = setting(
+        None,
         help="map telemetry columns: 'file=COL,frame_id=COL,time=COL,x=COL,...,qw=COL' plus "
         "'unit=mm|m,time_unit=us|ms|s'",
     )
-    p.add_argument(
-        "--camera-offset",
+    camera_offset: str | None = setting(
+        None,
         metavar="X,Y,Z",
         help="camera position in the drone's body axes, metres (default: at the body origin)",
     )
-    p.add_argument(
-        "--bayer",
-        default="auto",
-        type=str.upper,
-        choices=["AUTO", "NONE", "RGGB", "BGGR", "GRBG", "GBRG"],
+    bayer: str = setting(
+        "AUTO",
+        parse=str.upper,
+        choices=("AUTO", "NONE", "RGGB", "BGGR", "GRBG", "GBRG"),
         help="raw Bayer mosaic in gray frames: detect (auto, default), none, or its pattern",
     )
-    p.add_argument(
-        "--replay",
+    replay: str | None = setting(
+        None,
         metavar="FRAMES_H5",
         help="re-run only the selection on the scores stored in FRAMES_H5 (no decoding)",
     )
-    g = p.add_argument_group("frame selection")
-    for f in dataclasses.fields(SelectionParams):
-        kind = int if f.name in ("max_gap", "target", "lookahead", "blur_window") else float
-        g.add_argument(
-            "--" + f.name.replace("_", "-"),
-            type=kind,
-            default=None,
-            help=f"{f.metadata['help']} (default: {f.default})",
-        )
+    selection: dict[str, Any] = flatten(
+        SelectionParams,
+        help=lambda f: f"{f.metadata['help']} (default: {f.default})",
+        group="frame selection",
+    )
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: Settings) -> int:
     """Ingest a source, or replay a stored selection."""
-    from dronecap.capture.selection import SelectionParams
     from dronecap.errors import InputError
 
-    fields = dataclasses.fields(SelectionParams)
-    changes = {f.name: getattr(args, f.name) for f in fields if getattr(args, f.name) is not None}
+    changes = args.selection
     bad = SelectionParams().replace(**changes).problems()
     if not (args.fps > 0 and math.isfinite(args.fps)):
         bad.insert(0, f"--fps: must be a positive frame rate, got {args.fps}")
@@ -107,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     return _ingest(args, SelectionParams().replace(**changes))
 
 
-def _ingest(args: argparse.Namespace, selection: object) -> int:
+def _ingest(args: Settings, selection: object) -> int:
     from dronecap import workspace
     from dronecap.capture.framing import parse_numbers, parse_size
     from dronecap.capture.ingest import IngestParams, ingest, params_record, tables_to_extra
@@ -188,7 +181,7 @@ def _sidecar_calibration(source: Path) -> str | None:
     return str(side) if isinstance(doc, dict) and isinstance(doc.get("intrinsics"), dict) else None
 
 
-def _replay(args: argparse.Namespace, changes: dict[str, object]) -> int:
+def _replay(args: Settings, changes: dict[str, object]) -> int:
     import numpy as np
 
     from dronecap.capture.ingest import extra_to_tables, tables_to_extra

@@ -2,32 +2,36 @@
 
 from __future__ import annotations
 
-import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
-HELP = "run a pipeline from pipelines.yaml with caching"
+from dronecap.stage import Settings as Base
+from dronecap.stage import setting
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of `dronecap run`."""
-    p.add_argument("name", nargs="?", help="pipeline name (omit to list the pipelines)")
-    p.add_argument(
-        "overrides",
-        nargs="*",
-        metavar="key=value",
+@dataclass(kw_only=True)
+class Settings(Base):
+    """Options of ``dronecap run``."""
+
+    name: str | None = setting(
+        None, positional=True, help="pipeline name (omit to list the pipelines)"
+    )
+    overrides: list[str] = setting(
+        factory=list,
+        positional=True,
         help="pipeline variables (video=my.mp4) or stage parameters (train.steps=2000)",
     )
-    p.add_argument("--file", default=None, help="pipelines file (default: pipelines.yaml here)")
-    p.add_argument("--runs", default=None, help="root of the stage outputs (default: WORKDIR/runs)")
-    p.add_argument("--force", action="append", default=[], metavar="STAGE", help="re-run STAGE")
-    p.add_argument("--dry-run", action="store_true", help="say what would run and why, run nothing")
-    p.add_argument(
-        "--from", dest="start", metavar="STAGE", help="start at STAGE (earlier ones must be cached)"
+    file: str | None = setting(None, help="pipelines file (default: pipelines.yaml here)")
+    runs: str | None = setting(None, help="root of the stage outputs (default: WORKDIR/runs)")
+    force: list[str] = setting(factory=list, repeat=True, metavar="STAGE", help="re-run STAGE")
+    dry_run: bool = setting(False, help="say what would run and why, run nothing")
+    start: str | None = setting(
+        None, flag="--from", metavar="STAGE", help="start at STAGE (earlier ones must be cached)"
     )
-    p.add_argument("--until", metavar="STAGE", help="stop after STAGE")
+    until: str | None = setting(None, metavar="STAGE", help="stop after STAGE")
 
 
-def _pipelines_file(args: argparse.Namespace) -> Path:
+def _pipelines_file(args: Settings) -> Path:
     if args.file:
         return Path(args.file)
     here = Path(args.workdir) / "pipelines.yaml"
@@ -39,12 +43,11 @@ def _pipelines_file(args: argparse.Namespace) -> Path:
     return Path(str(files("dronecap") / "pipelines.yaml"))
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: Settings) -> int:
     """Validate the pipeline, run it, print the summary and write report.md."""
-    from dronecap.cli import COMMANDS, build_parser
     from dronecap.figures import results_of
     from dronecap.pipeline import Runner, summary_table, write_report
-    from dronecap.pipeline_spec import build_pipeline, commands_used, load_specs
+    from dronecap.pipeline_spec import build_pipeline, load_specs
 
     path = _pipelines_file(args)
     specs = load_specs(path)
@@ -52,11 +55,9 @@ def run(args: argparse.Namespace) -> int:
         for name, spec in specs.items():
             print(f"{name:20s} {spec.get('description', '') if isinstance(spec, dict) else ''}")
         return 0
-    # Only the commands this pipeline uses are imported (each parser import is light).
-    parsers = {n: build_parser(n)[0] for n in commands_used(specs, args.name) if n in COMMANDS}
-    pipeline = build_pipeline(specs, args.name, path, parsers, args.overrides)
+    pipeline = build_pipeline(specs, args.name, path, args.overrides)
     root = Path(args.runs) if args.runs else Path(args.workdir) / "runs"
-    runner = Runner(pipeline, parsers, root, set(args.force), args.start, args.until)
+    runner = Runner(pipeline, root, set(args.force), args.start, args.until)
     results = runner.run(dry_run=args.dry_run)
     print("\n" + summary_table(results))
     if args.dry_run:

@@ -2,110 +2,90 @@
 
 from __future__ import annotations
 
-import argparse
-from dataclasses import fields
+from dataclasses import dataclass
+from typing import Any
 
-HELP = "recover camera poses with COLMAP (pycolmap), normalise and bound the scene -> posed.h5"
+from dronecap.sfm.options import SfmOptions
+from dronecap.stage import Settings as Base
+from dronecap.stage import flatten, setting
 
-# CLI flag -> SfmOptions field, for the settings worth exposing
-_FLAGS = {
-    "--max-features": ("max_features", int, "SIFT keypoints kept per frame"),
-    "--first-octave": ("first_octave", int, "-1 upsamples tiny frames before SIFT, 0 does not"),
-    "--matcher": ("matcher", str, "auto | sequential | exhaustive"),
-    "--exhaustive-below": ("exhaustive_below", int, "auto: exhaustive below this many frames"),
-    "--overlap": ("overlap", int, "sequential: frames matched after each frame"),
-    "--loop-period": ("loop_period", int, "loop detection: query every this-many-th frame"),
-    "--loop-images": ("loop_num_images", int, "loop detection: frames retrieved per query"),
-    "--min-registration": ("min_registration", float, "fail below this registered fraction"),
-    "--seed": ("seed", int, "mapper random seed"),
-    "--init-trials": ("init_trials", int, "2: also map from COLMAP's initial pair; keep best"),
-    "--threads": ("num_threads", int, "COLMAP threads (-1: all cores)"),
-    "--camera": (
-        "camera",
-        str,
-        "fixed | refine | estimate; auto: fixed when frames.h5 has a calibrated camera",
-    ),
-    "--init-max-gap": ("init_max_gap", int, "initial pair: at most this many frames apart"),
-    "--retry-below": ("retry_below", float, "retry with remedies below this registered fraction"),
-    "--retry-budget": ("retry_budget", float, "seconds after which no new retry starts"),
+# The SfmOptions fields offered as options, with their help (the others keep their defaults).
+OPTION_HELP = {
+    "max_features": "SIFT keypoints kept per frame",
+    "first_octave": "-1 upsamples tiny frames before SIFT, 0 does not",
+    "matcher": "auto | sequential | exhaustive",
+    "exhaustive_below": "auto: exhaustive below this many frames",
+    "overlap": "sequential: frames matched after each frame",
+    "loop_period": "loop detection: query every this-many-th frame",
+    "loop_num_images": "loop detection: frames retrieved per query",
+    "min_registration": "fail below this registered fraction",
+    "seed": "mapper random seed",
+    "init_trials": "2: also map from COLMAP's initial pair; keep best",
+    "num_threads": "COLMAP threads (-1: all cores)",
+    "camera": "fixed | refine | estimate; auto: fixed when frames.h5 has a calibrated camera",
+    "init_max_gap": "initial pair: at most this many frames apart",
+    "retry_below": "retry with remedies below this registered fraction",
+    "retry_budget": "seconds after which no new retry starts",
+    "clahe": "contrast-normalise frames before SIFT (low-contrast, vignetted footage)",
+    "prior_fallback": "frames that fail to register keep their telemetry prior pose in posed.h5",
+    "quadratic_overlap": "sequential: pair frame i with i+2^k (COLMAP default) instead of "
+    "i+1..i+overlap",
 }
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of ``dronecap sfm`` (defaults from dronecap.sfm.options.SfmOptions)."""
-    p.add_argument("--frames", help="input frames.h5 (default: WORKDIR/frames.h5)")
-    p.add_argument("-o", "--output", help="output posed.h5 (default: WORKDIR/posed.h5)")
-    p.add_argument("--sfm-dir", help="model, PLY and report folder (default: WORKDIR/sfm)")
-    p.add_argument(
-        "--gt",
+@dataclass(kw_only=True)
+class Settings(Base):
+    """Options of ``dronecap sfm`` (COLMAP's are SfmOptions fields, defaults from there)."""
+
+    frames: str | None = setting(None, help="input frames.h5 (default: WORKDIR/frames.h5)")
+    output: str | None = setting(
+        None, short="-o", help="output posed.h5 (default: WORKDIR/posed.h5)"
+    )
+    sfm_dir: str | None = setting(None, help="model, PLY and report folder (default: WORKDIR/sfm)")
+    gt: str | None = setting(
+        None,
         help="ground truth to measure accuracy against: the simulator's flight.json/poses.json, "
         "or a TUM trajectory (matched to the frames by timestamp, within 20 ms)",
     )
-    p.add_argument(
-        "--camera-from",
-        help="posed.h5 of an earlier reconstruction of the same drone: use its camera",
+    camera_from: str | None = setting(
+        None, help="posed.h5 of an earlier reconstruction of the same drone: use its camera"
     )
-    p.add_argument(
-        "--clahe",
-        dest="clahe",
-        action="store_true",
-        default=None,
-        help="contrast-normalise frames before SIFT (low-contrast, vignetted footage)",
+    options: dict[str, Any] = flatten(
+        SfmOptions,
+        only=tuple(OPTION_HELP),
+        flags={"loop_num_images": "loop-images", "num_threads": "threads"},
+        help=lambda f: (
+            OPTION_HELP[f.name] + ("" if f.type == "bool" else f" (default: {f.default})")
+        ),
     )
-    p.add_argument(
-        "--prior-fallback",
-        dest="prior_fallback",
-        action="store_true",
-        default=None,
-        help="frames that fail to register keep their telemetry prior pose in posed.h5",
+    no_loop_detection: bool = setting(
+        False, help="sequential: no loop pairs from the flight's visual index"
     )
-    for flag, (name, typ, text) in _FLAGS.items():
-        p.add_argument(flag, dest=name, type=typ, default=None, help=text)
-    p.add_argument(
-        "--quadratic-overlap",
-        dest="quadratic_overlap",
-        action="store_true",
-        default=None,
-        help="sequential: pair frame i with i+2^k (COLMAP default) instead of i+1..i+overlap",
+    no_extend: bool = setting(
+        False, help="do not resume mapping from the largest model to absorb the others"
     )
-    p.add_argument(
-        "--no-loop-detection",
-        dest="loop_detection",
-        action="store_false",
-        default=None,
-        help="sequential: no loop pairs from the flight's visual index",
-    )
-    p.add_argument(
-        "--no-extend",
-        dest="extend",
-        action="store_false",
-        default=None,
-        help="do not resume mapping from the largest model to absorb the others",
-    )
-    p.add_argument("--quiet", action="store_true", help="no progress bar and no printed report")
+    quiet: bool = setting(False, help="no progress bar and no printed report")
 
 
-def run(args: argparse.Namespace) -> int:
+def run(s: Settings) -> int:
     """Run the stage; 0 on success (InputError -> exit 1 via the CLI)."""
     from pathlib import Path
 
     from dronecap import workspace
-    from dronecap.sfm.options import SfmOptions
     from dronecap.sfm.pipeline import run_sfm
 
-    given = {
-        f.name: getattr(args, f.name)
-        for f in fields(SfmOptions)
-        if getattr(args, f.name, None) is not None
-    }
-    opts = SfmOptions(**given)
+    given = dict(s.options)
+    if s.no_loop_detection:
+        given["loop_detection"] = False
+    if s.no_extend:
+        given["extend"] = False
     report = run_sfm(
-        frames_path=workspace.resolve(args.workdir, args.frames, workspace.FRAMES),
-        posed_path=workspace.resolve(args.workdir, args.output, workspace.POSED),
-        sfm_dir=workspace.resolve(args.workdir, args.sfm_dir, workspace.SFM_DIR),
-        opts=opts,
-        gt_path=Path(args.gt) if args.gt else None,
-        progress=not args.quiet,
-        camera_from=Path(args.camera_from) if args.camera_from else None,
+        frames_path=workspace.resolve(s.workdir, s.frames, workspace.FRAMES),
+        posed_path=workspace.resolve(s.workdir, s.output, workspace.POSED),
+        sfm_dir=workspace.resolve(s.workdir, s.sfm_dir, workspace.SFM_DIR),
+        opts=SfmOptions(**given),
+        gt_path=Path(s.gt) if s.gt else None,
+        progress=not s.quiet,
+        camera_from=Path(s.camera_from) if s.camera_from else None,
     )
     return 0 if report["status"] == "ok" else 1

@@ -8,88 +8,94 @@ Each defect flag given without a value takes its realistic default level
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
+from dataclasses import dataclass
+from typing import Any
 
-HELP = "render a synthetic nano-drone flight video with ground truth"
+from dronecap.simulator.sensor import DEFECT_DEFAULTS
+from dronecap.stage import Settings as Base
+from dronecap.stage import setting
+
 SCENES = ("corridor", "orbit")
 CODECS = ("ffv1", "mjpg", "mp4v")
 FORMATS = ("mp4", "nanocockpit", "pulp-dronet")
 SENSORS = ("clean", "aideck", "aideck-162")
 
-# flag -> (metavar, number of values, help); their default levels live in DEFECT_DEFAULTS
-DEFECT_FLAGS = {
-    "distortion": ("K1,K2", 2, "OpenCV radial lens distortion (also K1,K2,K3)"),
-    "principal_offset": ("DX,DY", 2, "principal point off centre by DX*width, DY*height"),
-    "vignetting": ("V", 1, "light lost at the farthest corner (0-1)"),
-    "noise": ("READ,SHOT", 2, "read noise DN and shot noise DN^2 per DN"),
-    "blur": ("MS", 1, "exposure time in ms (motion blur from the flight's own motion)"),
-    "exposure_drift": ("A", 1, "relative amplitude of the auto-exposure gain drift (0-1)"),
-    "jpeg": ("Q", 1, "JPEG quality of the streamed frames (1-100)"),
-    "drop": ("RATE", 1, "fraction of frames lost by the link, in bursts (0-0.5)"),
-    "duplicate": ("RATE", 1, "fraction of frames delivered as the previous buffer (0-0.5)"),
-    "torn": ("RATE", 1, "fraction of frames whose bottom part is black/gray/shifted (0-0.5)"),
-}
+
+def _defect(name: str, metavar: str, text: str) -> Any:
+    """A defect option: given alone, it takes its realistic level from DEFECT_DEFAULTS."""
+    level = DEFECT_DEFAULTS[name]
+    shown = ",".join(str(x) for x in level) if isinstance(level, tuple) else str(level)
+    return setting(None, const=shown, metavar=metavar, help=f"{text}; given alone: {shown}")
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of the command."""
-    import re
+@dataclass(kw_only=True)
+class Settings(Base):
+    """Options of ``dronecap simulate``."""
 
-    from dronecap.simulator.sensor import DEFECT_DEFAULTS
-
-    # `--distortion -0.1,0.02`: argparse takes only plain negative numbers ("-0.1") for values;
-    # let comma-separated lists starting with a minus sign be values too.
-    p._negative_number_matcher = re.compile(r"^-\d*\.?\d+(e-?\d+)?(,-?\d*\.?\d+(e-?\d+)?)*$")
-    p.add_argument("--scene", default="corridor", choices=SCENES, help="scene")
-    p.add_argument(
-        "-o",
-        "--output",
+    scene: str = setting("corridor", choices=SCENES, help="scene")
+    output: str | None = setting(
+        None,
+        short="-o",
         help="video file (default: WORKDIR/flight.mp4; ground truth beside it as .json) or, "
         "for a folder format, the capture folder (default: WORKDIR/capture; flight.json inside)",
     )
-    p.add_argument("--frames", type=int, default=600, help="source frames at 30 Hz")
-    p.add_argument("--seed", type=int, default=0, help="random seed (>= 0)")
-    p.add_argument(
-        "--codec",
-        default="ffv1",
+    frames: int = setting(600, help="source frames at 30 Hz")
+    seed: int = setting(0, minimum=0, help="random seed (>= 0)")
+    codec: str = setting(
+        "ffv1",
         choices=CODECS,
         help="mp4 format: ffv1 = lossless (best for SIFT); mjpg / mp4v = smaller, lossy",
     )
-    p.add_argument(
-        "--format",
-        default="mp4",
+    format: str = setting(
+        "mp4",
         choices=FORMATS,
         help="mp4: a video; nanocockpit: camera_raw/*.png + metadata.csv; pulp-dronet: "
         "images/<ticks>.jpeg + state.csv (both with noisy, drifting onboard state)",
     )
-    p.add_argument(
-        "--sensor",
-        default="clean",
+    sensor: str = setting(
+        "clean",
         choices=SENSORS,
         help="clean: 160x160 pinhole, mild noise; aideck: HM01B0 at 324x244 (f 184 px) with "
         "every defect at its default level; aideck-162: the same binned to 162x162",
     )
-    p.add_argument("--size", metavar="WxH", help="image size (default: the sensor's)")
-    p.add_argument("--focal", type=float, help="focal length in pixels (default: the sensor's)")
-    for name, (metavar, _, text) in DEFECT_FLAGS.items():
-        level = DEFECT_DEFAULTS[name]
-        shown = ",".join(str(x) for x in level) if isinstance(level, tuple) else str(level)
-        p.add_argument(
-            "--" + name.replace("_", "-"),
-            nargs="?",
-            const=shown,
-            metavar=metavar,
-            help=f"{text}; given alone: {shown}",
-        )
-    p.add_argument(
-        "--state-noise",
+    size: str | None = setting(None, metavar="WxH", help="image size (default: the sensor's)")
+    focal: float | None = setting(None, help="focal length in pixels (default: the sensor's)")
+    distortion: str | None = _defect(
+        "distortion", "K1,K2", "OpenCV radial lens distortion (also K1,K2,K3)"
+    )
+    principal_offset: str | None = _defect(
+        "principal_offset", "DX,DY", "principal point off centre by DX*width, DY*height"
+    )
+    vignetting: str | None = _defect("vignetting", "V", "light lost at the farthest corner (0-1)")
+    noise: str | None = _defect("noise", "READ,SHOT", "read noise DN and shot noise DN^2 per DN")
+    blur: str | None = _defect(
+        "blur", "MS", "exposure time in ms (motion blur from the flight's own motion)"
+    )
+    exposure_drift: str | None = _defect(
+        "exposure_drift", "A", "relative amplitude of the auto-exposure gain drift (0-1)"
+    )
+    jpeg: str | None = _defect("jpeg", "Q", "JPEG quality of the streamed frames (1-100)")
+    drop: str | None = _defect(
+        "drop", "RATE", "fraction of frames lost by the link, in bursts (0-0.5)"
+    )
+    duplicate: str | None = _defect(
+        "duplicate", "RATE", "fraction of frames delivered as the previous buffer (0-0.5)"
+    )
+    torn: str | None = _defect(
+        "torn", "RATE", "fraction of frames whose bottom part is black/gray/shifted (0-0.5)"
+    )
+    state_noise: str | None = setting(
+        None,
         metavar="POS_MM,ANGLE_DEG,SCALE,YAW_DRIFT",
         help="folder formats: onboard estimate errors: white position noise (mm), attitude "
         "noise (deg), odometry scale error (fraction), heading drift (deg/min) "
         "(default: 5,0.5,0.01,2)",
     )
+
+
+DEFECTS = tuple(DEFECT_DEFAULTS)  # the defect options, by field name
 
 
 def _numbers(flag: str, text: str, count: tuple[int, ...]) -> tuple[float, ...]:
@@ -106,7 +112,7 @@ def _numbers(flag: str, text: str, count: tuple[int, ...]) -> tuple[float, ...]:
     return vals
 
 
-def capture_from_args(args: argparse.Namespace):  # noqa: ANN201 - a simulate.Capture
+def capture_from_settings(args: Settings):  # noqa: ANN201 - a simulate.Capture
     """The :class:`~dronecap.simulator.simulate.Capture` the options describe (range-checked)."""
     import dataclasses
 
@@ -136,7 +142,7 @@ def capture_from_args(args: argparse.Namespace):  # noqa: ANN201 - a simulate.Ca
         )
         lens = with_lens_defects(new, None, offset)
         lens = dataclasses.replace(lens, model=sensor.lens.model, distortion=sensor.lens.distortion)
-    v = {k: getattr(args, k) for k in DEFECT_FLAGS}
+    v = {k: getattr(args, k) for k in DEFECTS}
     if v["principal_offset"] is not None:
         dx, dy = _numbers("principal-offset", v["principal_offset"], (2,))
         if not (abs(dx) < 0.4 and abs(dy) < 0.4):
@@ -181,17 +187,15 @@ def capture_from_args(args: argparse.Namespace):  # noqa: ANN201 - a simulate.Ca
     return capture
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: Settings) -> int:
     """Render the flight and print where it went."""
     from dronecap import workspace
     from dronecap.errors import InputError
     from dronecap.simulator.simulate import simulate
 
-    if args.seed < 0:
-        raise InputError(f"--seed must be >= 0, got {args.seed}")
     if args.frames < 2 or args.frames > 100_000:
         raise InputError(f"--frames must be 2-100000, got {args.frames}")
-    capture = capture_from_args(args)
+    capture = capture_from_settings(args)
     default = "flight.mp4" if args.format == "mp4" else "capture"
     out = workspace.resolve(args.workdir, args.output, default)
     t0 = time.perf_counter()

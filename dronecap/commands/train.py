@@ -5,93 +5,111 @@ dronecap train [dataset.h5] [--preset scene-sized] [--steps N] [--out RUN_DIR]
                [--time-budget S] [--target-psnr DB] [--plateau-db DB] [--budget-mb MB]
                [--set FIELD=VALUE ...] [--FIELD VALUE ...] [--no-resume | --resume-from RUN]
                [--no-eval] [--threads N]
+
+Every ``TrainConfig`` field is an option (``--steps 3000``) except the ones the dataset decides
+(``nerf.config.DATA_FIELDS``: resolution, channels, train images).
 """
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
 
-from dronecap.cpu import add_threads_argument, check_threads, use_torch_threads
+from dronecap.nerf.backend import BACKENDS
+from dronecap.nerf.config import DATA_FIELDS, DEFAULT_PRESET, PRESETS, TrainConfig, parse_field
+from dronecap.stage import flatten, setting
+from dronecap.stage_common import ProgressSettings, TorchSettings
 
-HELP = "train Tiny-DroNeRF on a dataset -> run dir"
+CONFIG_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.name not in DATA_FIELDS)
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of the command (one per TrainConfig field, generated from the dataclass)."""
-    from dronecap.nerf.backend import BACKENDS
-    from dronecap.nerf.config import add_config_arguments
+@dataclass(kw_only=True)
+class Settings(TorchSettings, ProgressSettings):
+    """Options of ``dronecap train``."""
 
-    p.add_argument("dataset", nargs="?", help="dataset.h5 (default: WORKDIR/dataset.h5)")
-    p.add_argument("--out", help="run dir (default: WORKDIR/runs/train)")
-    p.add_argument(
-        "--no-resume", action="store_true", help="start over even if a checkpoint exists"
+    dataset: str | None = setting(
+        None, positional=True, help="dataset.h5 (default: WORKDIR/dataset.h5)"
     )
-    p.add_argument(
-        "--resume-from",
+    out: str | None = setting(None, help="run dir (default: WORKDIR/runs/train)")
+    no_resume: bool = setting(False, help="start over even if a checkpoint exists")
+    resume_from: str | None = setting(
+        None,
         metavar="RUN",
         help="continue the model of another run folder (or checkpoint), even one trained on "
         "another dataset (with a warning)",
     )
-    p.add_argument(
-        "--no-eval", action="store_true", help="do not evaluate (a dataset without test views)"
-    )
-    add_threads_argument(p)
-    p.add_argument(
-        "--backend",
-        default="auto",
+    no_eval: bool = setting(False, help="do not evaluate (a dataset without test views)")
+    backend: str = setting(
+        "auto",
         choices=BACKENDS,
         help="hash-grid/marching implementation (auto: C++ kernels when they build)",
     )
-    p.add_argument("--checkpoint-every", default="500", help="steps between checkpoints")
-    p.add_argument(
-        "--time-budget",
+    checkpoint_every: str = setting("500", help="steps between checkpoints")
+    time_budget: str | None = setting(
+        None,
         metavar="SECONDS",
         help="train for this many seconds: the step count and lr decay are planned from the "
         "measured step time (default: the configuration's fixed step count)",
     )
-    p.add_argument("--target-psnr", metavar="DB", help="stop once held-out views reach this PSNR")
-    p.add_argument(
-        "--plateau-db",
-        default="0",
+    target_psnr: str | None = setting(
+        None, metavar="DB", help="stop once held-out views reach this PSNR"
+    )
+    plateau_db: str = setting(
+        "0",
         metavar="DB",
         help="stop when the held-out PSNR gained less than this over the last 4 checks "
         "(default 0: off)",
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_config_arguments(p)
+    preset: str = setting(DEFAULT_PRESET, help=f"named configuration: {', '.join(PRESETS)}")
+    set: list[str] = setting(
+        factory=list,
+        repeat=True,
+        metavar="FIELD=VALUE",
+        help="override any configuration field (repeatable)",
+    )
+    config: dict[str, Any] = flatten(
+        TrainConfig,
+        only=CONFIG_FIELDS,
+        parse=parse_field,
+        help=lambda f: f"{f.name} (preset value otherwise)",
+        group="configuration fields (override the preset)",
+    )
 
 
-def run(args: argparse.Namespace) -> int:
+def run(s: Settings) -> int:
     """Check every option, train, evaluate, write cost.json, print the test metrics."""
     from dronecap import workspace
+    from dronecap.cpu import check_threads, use_torch_threads
     from dronecap.errors import InputError
-    from dronecap.nerf.config import config_from_args
+    from dronecap.nerf.config import config_from_overrides
     from dronecap.nerf.resolve import check_config
 
+    given = {a.split("=", 1)[0].strip().replace("-", "_") for a in s.set} | set(s.config)
+    decided = sorted(given & set(DATA_FIELDS))
+    if decided:
+        raise InputError(f"{decided[0]} is the dataset's (resolved from it), not a setting")
     try:
-        cfg = config_from_args(args)
+        cfg = config_from_overrides(s.preset, s.set, s.config)
     except (ValueError, KeyError, TypeError) as err:
         raise InputError(str(err).strip("'\"")) from None
     check_config(cfg)
-    check_threads(args.threads)
+    check_threads(s.threads)
     try:
-        every = int(args.checkpoint_every)
+        every = int(s.checkpoint_every)
     except ValueError:
         every = 0
     if every < 1:
-        raise InputError(
-            f"--checkpoint-every takes a positive integer, got {args.checkpoint_every!r}"
-        )
-    if args.resume_from and args.no_resume:
+        raise InputError(f"--checkpoint-every takes a positive integer, got {s.checkpoint_every!r}")
+    if s.resume_from and s.no_resume:
         raise InputError("give --resume-from or --no-resume, not both")
-    until = _until(args)
-    given = {a.split("=", 1)[0].strip().replace("-", "_") for a in args.set}
-    if until.time_budget_s and args.cfg_lr_final_ratio is None and "lr_final_ratio" not in given:
+    until = _until(s)
+    if until.time_budget_s and "lr_final_ratio" not in given:
         from dronecap.nerf.budget import BUDGET_LR_FINAL_RATIO
 
         cfg = cfg.replace(lr_final_ratio=BUDGET_LR_FINAL_RATIO)  # a short schedule decays less
-    dataset = workspace.resolve(args.workdir, args.dataset, workspace.DATASET)
-    out = workspace.resolve(args.workdir, args.out, workspace.TRAIN_RUN)
+    dataset = workspace.resolve(s.workdir, s.dataset, workspace.DATASET)
+    out = workspace.resolve(s.workdir, s.out, workspace.TRAIN_RUN)
     from dronecap.commands.cost import write_run_cost
     from dronecap.gap9.model import cost_report
     from dronecap.nerf.run_dir import train_run
@@ -99,17 +117,17 @@ def run(args: argparse.Namespace) -> int:
     def gap9_bytes(c):  # modelled GAP9 memory (Table II accounting) for the sizing's budget
         return cost_report(c)["memory"]["untiled"]["total"]
 
-    use_torch_threads(args.threads)
+    use_torch_threads(s.threads)
     m = train_run(
         dataset,
         cfg,
         out,
-        resume=not args.no_resume,
-        progress=not args.no_progress,
+        resume=not s.no_resume,
+        progress=not s.no_progress,
         checkpoint_every=every,
-        backend=args.backend,
-        evaluate=not args.no_eval,
-        resume_from=args.resume_from,
+        backend=s.backend,
+        evaluate=not s.no_eval,
+        resume_from=s.resume_from,
         memory_fn=gap9_bytes,
         until=until,
     )
@@ -128,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _until(args: argparse.Namespace):
+def _until(s: Settings):
     """The BudgetConfig of --time-budget/--target-psnr/--plateau-db (InputError when bad)."""
     from dronecap.errors import InputError
     from dronecap.nerf.budget import BudgetConfig
@@ -142,9 +160,9 @@ def _until(args: argparse.Namespace):
             raise InputError(f"{option} takes a number, got {text!r}") from None
 
     until = BudgetConfig(
-        time_budget_s=number(args.time_budget, "--time-budget"),
-        target_psnr=number(args.target_psnr, "--target-psnr"),
-        plateau_db=number(args.plateau_db, "--plateau-db"),
+        time_budget_s=number(s.time_budget, "--time-budget"),
+        target_psnr=number(s.target_psnr, "--target-psnr"),
+        plateau_db=number(s.plateau_db, "--plateau-db"),
     )
     bad = until.problems()
     if bad:
