@@ -80,11 +80,11 @@ class Field(nn.Module):
     def _run(self, mlp: nn.Sequential, x: Tensor) -> Tensor:
         """Apply ``mlp`` rounding every activation to the storage dtype (GAP9 emulation).
 
-        Without autograd the ReLUs work in place (a ReLU of a rounded value needs no rounding).
+        The ReLUs work in place (a ReLU of a rounded value needs no rounding), with autograd
+        too: a bias-free linear layer's backward needs its input and weight, not its output.
         """
-        inplace = not torch.is_grad_enabled()
         for layer in mlp:
-            if inplace and isinstance(layer, nn.ReLU):
+            if isinstance(layer, nn.ReLU):
                 x = torch.relu_(x)
             else:
                 x = round_to(layer(x), self.dtype)
