@@ -23,33 +23,42 @@ PACKAGES = ("capture", "sfm", "datasets", "nerf", "camera", "simulator", "federa
 CLI = [sys.executable, "-m", "dronecap.cli"]
 
 
+def unpack(commit: str, work: Path) -> Path:
+    """``work/snapshot-<commit>``: ``git archive`` of ``commit`` with the stage folders laid out
+    as the ``dronecap.*`` packages under ``pkg/`` (put that on PYTHONPATH); unpacked once."""
+    git = ["git", "-C", str(REPO)]
+    commit = subprocess.run([*git, "rev-parse", "--short", commit], check=True,
+                            capture_output=True, text=True).stdout.strip()  # fmt: skip
+    root = work / f"snapshot-{commit}"
+    if root.exists():
+        return root
+    tmp = work / f".snapshot-{os.getpid()}"
+    tmp.mkdir(parents=True)
+    tar = subprocess.run([*git, "archive", commit], check=True, capture_output=True)
+    subprocess.run(["tar", "-x", "-C", str(tmp)], input=tar.stdout, check=True)
+    pkg = tmp / "pkg" / "dronecap"
+    pkg.parent.mkdir()
+    (tmp / "dronecap").rename(pkg)
+    for sub in PACKAGES:
+        if (tmp / sub).exists():
+            (tmp / sub).rename(pkg / sub)
+    (pkg / "pipelines.yaml").unlink(missing_ok=True)
+    (tmp / "pipelines.yaml").rename(pkg / "pipelines.yaml")
+    try:
+        tmp.rename(root)
+    except OSError:  # another benchmark unpacked the same commit meanwhile
+        subprocess.run(["rm", "-rf", str(tmp)], check=True)
+    return root
+
+
 def rerun_on_snapshot(work: Path, script: Path) -> None:
     """Re-execute ``script`` (with this process's arguments) on a snapshot of HEAD unpacked in
-    ``work/snapshot-<commit>``; returns only when already running on a snapshot. Results go to
+    ``work`` (:func:`unpack`); returns only when already running on a snapshot. Results go to
     the work tree's benchmarks/results (``DRONECAP_RESULTS``)."""
     if os.environ.get("DRONECAP_SNAPSHOT"):
         return
-    git = ["git", "-C", str(REPO)]
-    commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], check=True,
-                            capture_output=True, text=True).stdout.strip()  # fmt: skip
-    root = work / f"snapshot-{commit}"
-    if not root.exists():
-        tmp = work / f".snapshot-{os.getpid()}"
-        tmp.mkdir(parents=True)
-        tar = subprocess.run([*git, "archive", "HEAD"], check=True, capture_output=True)
-        subprocess.run(["tar", "-x", "-C", str(tmp)], input=tar.stdout, check=True)
-        pkg = tmp / "pkg" / "dronecap"
-        pkg.parent.mkdir()
-        (tmp / "dronecap").rename(pkg)
-        for sub in PACKAGES:
-            if (tmp / sub).exists():
-                (tmp / sub).rename(pkg / sub)
-        (pkg / "pipelines.yaml").unlink(missing_ok=True)
-        (tmp / "pipelines.yaml").rename(pkg / "pipelines.yaml")
-        try:
-            tmp.rename(root)
-        except OSError:  # another benchmark unpacked the same commit meanwhile
-            subprocess.run(["rm", "-rf", str(tmp)], check=True)
+    root = unpack("HEAD", work)
+    commit = root.name.removeprefix("snapshot-")
     env = dict(os.environ, DRONECAP_SNAPSHOT=commit, PYTHONPATH=str(root / "pkg"),
                DRONECAP_RESULTS=str(RESULTS), DRONECAP_DATA=str(DATA))  # fmt: skip
     print(f"running on a snapshot of commit {commit}: {root}", flush=True)

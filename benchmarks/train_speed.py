@@ -1,149 +1,207 @@
-"""Trainer speed on lego 160 px: a full tiny-dronerf training step and one 160x160 render.
+"""Trainer speed of the default configuration: step time against earlier code, render time.
 
-A "full step" is everything `Trainer.train_step` does: drawing rays, marching, the occupancy
-grid update when due (amortised: steps are timed over a window that includes the steady
-every-16-steps updates), forward/backward over the tiles, and Adam. The model is first trained
-for --warm steps so that the grid, the samples per ray and the renders are representative.
-Variants: thread counts, accumulation tiles of 1024 (as on GAP9) vs one 8192-sample tile,
-the C++ kernels vs the PyTorch reference. Medians of --repeats windows.
+Step time: everything `Trainer.train_step` does (drawing rays, marching, the occupancy grid
+update when due, amortised over windows that include the every-16-steps updates, forward,
+backward, Adam) for the default ``scene-sized`` model on lego 160 px RGB, after --warm steps,
+at 1 and 2 threads. Each variant runs in its own process, and the variants take turns for
+--rounds rounds (the machine is shared: the median over rounds of the median over windows):
 
-    .venv/bin/python benchmarks/train_speed.py
+- this commit;
+- this commit with the hash-grid kernels built without their AVX2/AVX-512 paths
+  (``DRONECAP_NO_SIMD=1``);
+- earlier code (``--previous COMMIT``, default: the commit before this session's speed work),
+  run from a ``git archive`` of that commit;
+- the pure-PyTorch reference path (``--backend torch``: encoding and marching in PyTorch);
+- the paper's preset (``tiny-dronerf``) on this commit, for reference.
+
+Render time: one 160x160 view of models trained --trained steps (default 10000, 2 threads) on
+lego and on the simulated corridor flight (``simulate -> ingest -> sfm -> split``), with the
+default early stop and without it (the exact reference, PSNR between the two), at 1 and 2
+threads; and the half-resolution preview.
+
+    .venv/bin/python benchmarks/train_speed.py [--rounds 3] [--trained 10000]
+
+Writes benchmarks/results/train_speed.md (with the load average: measure on an idle machine).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
+from scene_sized import build_scene
+from snapshot import DATA, RESULTS, unpack
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
-LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
+LEGO = DATA / "nerf_synthetic_160" / "lego"
+PREVIOUS = "b11b22b"  # main before the AVX2 kernel path, fused Adam and per-ray SH
+ROW = "@@ "  # prefix of a measurement line printed by a --measure process
 
 
-def main() -> None:
-    """Measure and write benchmarks/results/train_speed.md."""
+def lego(cache: Path):
+    """The lego 160 px RGB dataset (imported once into ``cache``)."""
     from dronecap.datasets.blender import import_blender
     from dronecap.datasets.format import open_dataset
+
+    path = cache / "lego.h5"
+    if not path.exists():
+        cache.mkdir(parents=True, exist_ok=True)
+        import_blender(LEGO, path, progress=False)
+    return open_dataset(path)
+
+
+def measure_steps(args: argparse.Namespace) -> None:
+    """(--measure) Train --warm steps, then print one JSON row per thread count: median CPU
+    and wall ms per step over --repeats windows of --window steps."""
+    import torch
+
     from dronecap.nerf.config import preset
     from dronecap.nerf.trainer import Trainer
 
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--warm", type=int, default=500, help="steps trained before timing")
-    p.add_argument("--trained", type=int, default=3000, help="steps of the second render model")
-    p.add_argument("--window", type=int, default=32, help="steps per timed window")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--cache", default="/tmp/dronecap_bench")
-    args = p.parse_args()
-    path = Path(args.cache) / "lego.h5"
-    if not path.exists():
-        import_blender(LEGO, path, progress=False)
-    ds = open_dataset(path)
     torch.set_num_threads(1)
-    base = preset("tiny-dronerf").replace(grid_res=64, tile_samples=8192)
-    tr = Trainer(base, ds)
+    tr = Trainer(preset(args.preset), lego(Path(args.cache)), backend=args.backend)
     tr.train(args.warm, progress=False)
-    state = {k: v.clone() for k, v in tr.field.state_dict().items()}
-    grid = tr.grid_state()
-    rows = []
-
-    def step_ms(label: str, threads: int, backend: str = "auto", **changes) -> None:
+    for threads in (1, 2):
         torch.set_num_threads(threads)
-        t = Trainer(base.replace(**changes), ds, backend=backend)
-        t.field.load_state_dict(state)
-        res = t.grid_cfg.res
-        if res == base.grid_res:
-            t.load_grid_state(grid)
-        else:  # nearest-neighbour resampling of the warmed-up grid
-            idx = np.arange(res) * base.grid_res // res
-            cube = {k: v.reshape((base.grid_res,) * 3) for k, v in grid.items()}
-            t.load_grid_state({k: v[np.ix_(idx, idx, idx)].reshape(-1) for k, v in cube.items()})
-        t.step = tr.step  # after warm-up: updates every 16 steps
-        t.samples_per_ray = tr.samples_per_ray
-        t.train(4, progress=False)
-        wall, cpu = [], []
+        tr.train(4, progress=False)
+        wall, cpu, logs = [], [], []
         for _ in range(args.repeats):
             t0, c0 = time.perf_counter(), time.process_time()
-            logs = t.train(args.window, progress=False)
+            logs = tr.train(args.window, progress=False)
             wall.append(1000 * (time.perf_counter() - t0) / args.window)
             cpu.append(1000 * (time.process_time() - c0) / args.window)
-        spr = np.mean([lg["samples"] / lg["rays"] for lg in logs])
-        batch = f"{np.mean([lg['samples'] for lg in logs]):.0f} samples, {spr:.1f}/ray"
-        rows.append((label, f"{np.median(cpu):.1f}", f"{np.median(wall):.1f}", batch))
-        print(rows[-1], flush=True)
+        samples = float(np.mean([lg["samples"] for lg in logs]))
+        rays = float(np.mean([lg["rays"] for lg in logs]))
+        row = dict(threads=threads, cpu_ms=float(np.median(cpu)), wall_ms=float(np.median(wall)),
+                   samples=samples, per_ray=samples / rays)  # fmt: skip
+        print(ROW + json.dumps(row), flush=True)
 
-    test = np.flatnonzero(ds.split == 2)[::40]
-    exact: dict[str, np.ndarray] = {}
 
-    def render_s(label: str, threads: int, **thresholds) -> None:
-        """Median time of a view; with ``thresholds`` (render_rays' early-stop settings) the
-        renders become the reference the default ones are compared with (PSNR between them)."""
+def run_variant(args: argparse.Namespace, extra: list[str], env: dict[str, str]) -> list[dict]:
+    """Run this script with --measure (plus ``extra``) in a new process with ``env`` added."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--measure", "--warm", str(args.warm),
+           "--window", str(args.window), "--repeats", str(args.repeats), "--cache", args.cache,
+           *extra]  # fmt: skip
+    # not in the repository: `python script` puts the script's folder first on sys.path, never
+    # the repository root, so a PYTHONPATH snapshot is what `import dronecap` finds
+    p = subprocess.run(cmd, env=dict(os.environ, **env), capture_output=True, text=True,
+                       cwd=args.cache)  # fmt: skip
+    if p.returncode != 0:
+        raise SystemExit(f"variant {extra} {env} failed: {p.stderr.strip()[-400:]}")
+    return [json.loads(line[len(ROW) :]) for line in p.stdout.splitlines() if line.startswith(ROW)]
+
+
+def render_rows(args: argparse.Namespace, name: str, ds) -> list[tuple[str, str, str, str]]:
+    """Train the default model --trained steps on ``ds`` (2 threads) and time its renders."""
+    import torch
+
+    from dronecap.nerf.config import preset
+    from dronecap.nerf.trainer import Trainer
+
+    torch.set_num_threads(2)
+    tr = Trainer(preset("scene-sized").replace(steps=args.trained), ds)
+    tr.train(args.trained, progress=False)
+    views = np.flatnonzero(ds.split == 2)
+    views = views[:: max(1, len(views) // 5)][:5]
+    rows, exact = [], None
+    variants = [("no early stop (exact)", 1, dict(min_transmittance=0.0, min_weight=0.0)),
+                ("default", 1, {}), ("default", 2, {})]  # fmt: skip
+    for label, threads, thresholds in variants:
         torch.set_num_threads(threads)
         wall, cpu, images = [], [], []
         for _ in range(args.repeats):
             images = []
-            for i in test:
+            for i in views:
                 t0, c0 = time.perf_counter(), time.process_time()
                 images.append(tr.render(ds.poses[i], ds.intrinsics, **thresholds))
                 wall.append(1000 * (time.perf_counter() - t0))
                 cpu.append(1000 * (time.process_time() - c0))
-        key = f"{tr.step}"
-        if thresholds:
-            exact[key] = np.stack(images)
-            note = "the reference"
-        elif key in exact:
-            mse = float(np.mean((np.stack(images) - exact[key]) ** 2))
-            note = f"{-10 * np.log10(max(mse, 1e-20)):.0f} dB from the reference"
+        if exact is None:
+            exact, note = np.stack(images), "the reference"
         else:
-            note = ""
-        rows.append(
-            (
-                label,
-                f"{np.median(cpu):.0f}",
-                f"{np.median(wall):.0f}",
-                f"{len(test)} views x {args.repeats}" + (f"; {note}" if note else ""),
-            )
-        )
+            mse = float(np.mean((np.stack(images) - exact) ** 2))
+            note = f"{-10 * np.log10(max(mse, 1e-20)):.0f} dB from the reference"
+        rows.append((f"render, {name}, {args.trained}-step model, {label}, {threads} thread(s)",
+                     f"{np.median(cpu):.0f}", f"{np.median(wall):.0f}",
+                     f"{len(views)} views x {args.repeats}; {note}"))  # fmt: skip
         print(rows[-1], flush=True)
+    return rows
 
-    step_ms("step, tiny-dronerf (grid 64^3), 1 tile of 8192, C++ kernels, 1 thread", 1)
-    step_ms("step, 8 tiles of 1024 (GAP9 accumulation), 1 thread", 1, tile_samples=1024)
-    step_ms("step, grid 128^3 (paper preset as is), 1 thread", 1, grid_res=128)
-    step_ms("step, PyTorch reference encoding + marching, 1 thread", 1, backend="torch")
-    step_ms("step, tiny-dronerf (grid 64^3), 1 tile of 8192, C++ kernels, 2 threads", 2)
-    no_stop = dict(min_transmittance=0.0, min_weight=0.0)
-    for steps in (args.warm, args.trained):  # a young foggy model, then a trained one
-        torch.set_num_threads(1)
-        tr.train(steps - tr.step, progress=False)
-        at = f"{steps}-step model"
-        render_s(f"render 160x160 view, {at}, no early stop (exact), 1 thread", 1, **no_stop)
-        render_s(f"render 160x160 view, {at}, 1 thread", 1)
-        render_s(f"render 160x160 view, {at}, 2 threads", 2)
-    load = os.getloadavg()[0]
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--warm", type=int, default=500, help="steps trained before timing")
+    p.add_argument("--window", type=int, default=32, help="steps per timed window")
+    p.add_argument("--repeats", type=int, default=3, help="timed windows (renders: passes)")
+    p.add_argument("--rounds", type=int, default=3, help="turns each step variant takes")
+    p.add_argument("--previous", default=PREVIOUS, help="earlier commit to compare with")
+    p.add_argument("--trained", type=int, default=10_000, help="steps of the render models")
+    p.add_argument("--cache", default="/tmp/dronecap_bench")
+    p.add_argument("--measure", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--preset", default="scene-sized", help=argparse.SUPPRESS)
+    p.add_argument("--backend", default="auto", help=argparse.SUPPRESS)
+    args = p.parse_args()
+    Path(args.cache).mkdir(parents=True, exist_ok=True)
+    if args.measure:
+        measure_steps(args)
+        return
+    import torch
+
+    lego(Path(args.cache))  # imported once, before the variants run
+    old = unpack(args.previous, Path(args.cache))
+    variants = {
+        "this commit": ([], {}),
+        "this commit, kernels without SIMD": ([], {"DRONECAP_NO_SIMD": "1"}),
+        f"previous code ({args.previous})": ([], {"PYTHONPATH": str(old / "pkg")}),
+        "PyTorch reference path": (["--backend", "torch"], {}),
+        "paper preset (tiny-dronerf), this commit": (["--preset", "tiny-dronerf"], {}),
+    }
+    got: dict[tuple[str, int], list[dict]] = {}
+    for r in range(args.rounds):
+        for name, (extra, env) in variants.items():
+            for row in run_variant(args, extra, env):
+                got.setdefault((name, row["threads"]), []).append(row)
+                print(f"round {r + 1}: {name}: {row}", flush=True)
+    rows = []
+    for (name, threads), rs in got.items():
+        cpu = float(np.median([x["cpu_ms"] for x in rs]))
+        wall = float(np.median([x["wall_ms"] for x in rs]))
+        batch = f"{rs[-1]['samples']:.0f} samples, {rs[-1]['per_ray']:.1f}/ray"
+        rows.append((f"step, {name}, {threads} thread(s)", f"{cpu:.1f}", f"{wall:.1f}", batch))
+    rows.sort(key=lambda r: ("2 thread" in r[0], r[0]))
+    rows += render_rows(args, "lego", lego(Path(args.cache)))
+    work = Path(args.cache) / "scenes"
+    from dronecap.datasets.format import open_dataset
+
+    rows += render_rows(args, "corridor", open_dataset(build_scene("corridor", work)))
+    load = " ".join(f"{x:.1f}" for x in os.getloadavg())
     lines = [
-        "# Trainer speed (lego 160 px, tiny-dronerf)",
+        "# Trainer speed (default scene-sized model)",
         "",
-        f"torch {torch.__version__}, after {args.warm} warm-up steps; median of "
-        f"{args.repeats} windows of {args.window} steps (grid updates included, amortised). "
-        f"Load average {load:.1f} at the end of the run (2 cores): with other jobs running, "
-        "wall-clock times are inflated and the process CPU time of a 1-thread run is what "
-        "the step costs on an idle core. Renders: every 40th test view, the default early "
-        "stop (transmittance < 1e-3, colour skipped for weights < 1e-4) against none.",
+        f"torch {torch.__version__}; steps: lego 160 px RGB after {args.warm} warm-up steps, "
+        f"median over {args.rounds} rounds (variants in turn, each in its own process) of the "
+        f"median of {args.repeats} windows of {args.window} steps, grid updates included. "
+        "Renders: one 160x160 test view, median over 5 views x "
+        f"{args.repeats}, default early stop (transmittance < 1e-3, colour skipped for weights "
+        f"< 1e-4) against none. Load average (1/5/15 min) at the end: {load} (2 cores; CPU ms "
+        "of a 1-thread row is what it costs on an idle core, wall ms of a 2-thread row is "
+        "only meaningful at a load near 0).",
         "",
         "Command: `.venv/bin/python benchmarks/train_speed.py`",
         "",
-        "| measurement | CPU ms | wall ms | batch |",
+        "| measurement | CPU ms | wall ms | batch / note |",
         "|---|---:|---:|---|",
         *[f"| {a} | {b} | {c} | {d} |" for a, b, c, d in rows],
     ]
     text = "\n".join(lines) + "\n"
     print(text)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "train_speed.md").write_text(text)
+    results = Path(os.environ.get("DRONECAP_RESULTS", RESULTS))
+    (results / "train_speed.md").write_text(text)
 
 
 if __name__ == "__main__":
