@@ -14,7 +14,7 @@ import numpy as np
 ADVICE = (
     "try: more sequential overlap (--overlap 20) or --matcher exhaustive; keep more frames at "
     "ingest (fewer dropped, less motion between frames); give known intrinsics in frames.h5; "
-    "more features (--max-features 4096)"
+    "more features (--max-features 4096) or finer SIFT scales (--first-octave -2)"
 )
 
 

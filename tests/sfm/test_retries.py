@@ -26,6 +26,7 @@ def test_remedies_in_order_and_what_they_change():
         "exhaustive matching",
         "contrast normalisation (CLAHE)",
         "more features",
+        "finer SIFT scales",
         "known camera, fixed",
     ]
     o, p = opts, estimate
@@ -33,13 +34,16 @@ def test_remedies_in_order_and_what_they_change():
         o, p = change(o, p)
     assert o.matcher == "exhaustive" and o.clahe
     assert (o.max_features, o.peak_threshold) == (2000, 0.002)
+    assert o.first_octave == -2  # the default -1 upsamples 2x; the remedy 4x
     assert p is fixed
 
 
 def test_remedies_that_do_not_apply_are_skipped():
     opts = SfmOptions(matcher="exhaustive", clahe=True)
     fixed = CameraPlan("fixed", KNOWN, "calibration")
-    assert [n for n, _ in remedies(opts, fixed, None, 50)] == ["more features"]
+    assert [n for n, _ in remedies(opts, fixed, None, 50)] == ["more features", "finer SIFT scales"]
+    finest = SfmOptions(matcher="exhaustive", clahe=True, first_octave=-2)
+    assert [n for n, _ in remedies(finest, fixed, None, 50)] == ["more features"]
     # too many frames for exhaustive matching to be a remedy
     seq = SfmOptions(matcher="sequential")
     assert "exhaustive matching" not in [n for n, _ in remedies(seq, fixed, None, 1000)]
@@ -55,5 +59,7 @@ def test_a_failed_flight_reports_every_attempt(tmp_path):
         None,
         "contrast normalisation (CLAHE)",
         "more features",
+        "finer SIFT scales",
     ]
-    assert [a["work"] for a in report["attempts"]] == ["work", "work_retry1", "work_retry2"]
+    works = ["work", "work_retry1", "work_retry2", "work_retry3"]
+    assert [a["work"] for a in report["attempts"]] == works
