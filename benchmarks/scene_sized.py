@@ -159,8 +159,9 @@ def main() -> None:
     if unknown := [s for s in names if s not in SCENES]:
         raise SystemExit(f"unknown scenes {unknown}; known: {list(SCENES)}")
     rows = []
-    for name in names:
-        for config in args.configs.split(","):
+    configs = args.configs.split(",")
+    for config in configs:  # every scene's default first, the largest row last
+        for name in names:
             t0 = time.perf_counter()
             try:
                 dataset = build_scene(name, args.work)
@@ -170,6 +171,7 @@ def main() -> None:
                 rec = {"config": config, "error": str(err)[:200]}
             rows.append({"scene": name, **rec})
             print(json.dumps(rows[-1]), f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    rows.sort(key=lambda r: (names.index(r["scene"]), configs.index(r["config"])))
     load = "load average " + " ".join(open("/proc/loadavg").read().split()[:3]) + " at the end"
     text = table(rows, args.steps, load)
     print(text)
