@@ -32,7 +32,7 @@ from dronecap.sfm.normalize import apply_to_points, apply_to_poses, near_far, no
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.priors import fit_to_priors, read_priors
 from dronecap.sfm.reconstruct import ColmapResult
-from dronecap.sfm.report import ADVICE, drop_reason, dropped_runs, format_report
+from dronecap.sfm.report import ADVICE, drop_reason, dropped_runs, format_report, pose_jumps
 from dronecap.sfm.retries import reconstruct_with_retries
 
 MIN_FRAMES = 3
@@ -190,6 +190,7 @@ def run_sfm(
         "mean_track_length": float(rec.compute_mean_track_length()),
         "points": int(len(points)),
         "points_kept": int(norm.inliers.sum()),
+        "pose_jumps": pose_jumps(c2w[:, :3, 3], idx),
     }
     scene_from_model = norm.matrix @ metric
     report["scene"] = {

@@ -55,6 +55,36 @@ def dropped_runs(dropped: np.ndarray, n: int) -> list[dict[str, Any]]:
     return runs
 
 
+JUMP_FACTOR = 5.0  # a frame this many median steps away from both flight neighbours is a jump
+
+
+def pose_jumps(centres: np.ndarray, frames: np.ndarray) -> list[int]:
+    """Registered frames whose camera leaves the path of its neighbours and comes back.
+
+    Args:
+        centres: float [R, 3] camera centres of the registered frames, in flight order.
+        frames: int [R] their frame indices.
+
+    Returns:
+        frame indices k whose distance to both the previous and the next registered frame exceeds
+        :data:`JUMP_FACTOR` times the median step while those two neighbours lie within half
+        that distance of each other. Such a pose fits its points but not the flight (seen on
+        Himax test_15: one frame 3 units sideways and 15 deg rotated between neighbours 0.7
+        units apart, a rotation-translation ambiguity of a forward view of distant points).
+    """
+    c = np.asarray(centres, dtype=np.float64)
+    if len(c) < 3:
+        return []
+    step = np.linalg.norm(np.diff(c, axis=0), axis=1)  # [R - 1]
+    med = float(np.median(step))
+    if med <= 0.0:
+        return []
+    away = np.minimum(step[:-1], step[1:])  # [R - 2], frames 1..R-2
+    across = np.linalg.norm(c[2:] - c[:-2], axis=1)
+    jump = (away > JUMP_FACTOR * med) & (across < 0.5 * away)
+    return [int(f) for f in np.asarray(frames)[1:-1][jump]]
+
+
 def format_report(report: dict[str, Any]) -> str:
     """Human-readable multi-line summary of a report dict."""
     lines = [
@@ -69,6 +99,11 @@ def format_report(report: dict[str, Any]) -> str:
             f"  points {q['points']} ({q['points_kept']} kept for bounds), mean track length "
             f"{q['mean_track_length']:.2f}, mean reprojection error "
             f"{q['mean_reprojection_error_px']:.3f} px"
+        )
+    if q and q.get("pose_jumps"):
+        lines.append(
+            f"  pose jumps: frame(s) {', '.join(map(str, q['pose_jumps']))} lie more than "
+            f"{JUMP_FACTOR:g} median steps off the path of their neighbours (check them)"
         )
     cam = report.get("camera")
     if cam:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dronecap.sfm.report import drop_reason, dropped_runs, format_report
+from dronecap.sfm.report import drop_reason, dropped_runs, format_report, pose_jumps
 
 
 def test_dropped_runs_group_and_place_by_hand():
@@ -17,6 +17,26 @@ def test_dropped_runs_group_and_place_by_hand():
     assert runs[2]["where"] == "end (95% into the flight)"
     assert dropped_runs(np.array([], np.int64), 5) == []
     assert dropped_runs(np.arange(4), 4)[0]["where"] == "whole flight"
+
+
+def test_pose_jumps_flag_a_frame_that_leaves_the_path_and_comes_back():
+    # 7 frames 1 unit apart along x (median step 1); frame 3 pushed 6 units sideways: its steps
+    # are sqrt(1 + 36) = 6.1 > 5 x median, its neighbours 2 and 4 are 2 apart (< 6.1 / 2)
+    line = np.stack([np.arange(7.0), np.zeros(7), np.zeros(7)], axis=1)
+    frames = np.array([0, 1, 2, 3, 4, 5, 6]) + 10  # indices are reported, not positions
+    bent = line.copy()
+    bent[3, 1] = 6.0
+    assert pose_jumps(bent, frames) == [13]
+    assert pose_jumps(line, frames) == []
+    # a real long step (the flight moves on and does not come back) is no jump
+    far = line.copy()
+    far[4:, 0] += 20.0
+    assert pose_jumps(far, frames) == []
+    # the first and last frames have one neighbour only: never judged
+    ends = line.copy()
+    ends[0, 1] = ends[6, 1] = 50.0
+    assert pose_jumps(ends, frames) == []
+    assert pose_jumps(line[:2], frames[:2]) == []
 
 
 def test_drop_reason():
