@@ -5,7 +5,8 @@ image *names*), runs :func:`colmap_job` in a child process (:mod:`dronecap.sfm.i
 loads the chosen model. The child runs extraction, matching and incremental mapping, picks the
 largest of the models COLMAP returns (model 0 is not always the largest) and, when frames are
 still missing, resumes mapping from it with relaxed registration thresholds so that frames of the
-other models can join it.
+other models can join it; frames whose pose jumps off the flight path
+(:func:`dronecap.sfm.report.pose_jumps`) are then deregistered and registered again.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from dronecap.sfm.colmap_steps import (
 )
 from dronecap.sfm.isolate import run_isolated
 from dronecap.sfm.options import SfmOptions
+from dronecap.sfm.report import pose_jumps
 
 TINY_MODEL = 0.5  # our start registered under this fraction of usable frames: also try COLMAP's
 
@@ -121,11 +123,73 @@ def colmap_job(
             k = max(ext, key=lambda j: ext[j]["frames"])
             if ext[k]["frames"] > size:
                 out["best"] = k
+    jumps = jump_frames(Path(out["best"]), names)
+    if jumps:  # poses that fit their points but not the flight: register them again
+        t = phase("re-register jumps", found[best]["frames"])
+        out["best"], out["pose_jumps_remapped"] = remap_jumps(
+            db, images, root, Path(out["best"]), jumps, names, opts, refine_camera, on_register
+        )
+        times["remap_jumps"] = time.perf_counter() - t
     if refine_after:
         t = phase("refine camera", found[best]["frames"])
         out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
         times["refine_camera"] = time.perf_counter() - t
     return out
+
+
+def jump_frames(model: Path, names: list[str]) -> list[int]:
+    """Frame indices (into ``names``) of ``model`` that :func:`pose_jumps` flags."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(model)
+    pos = {n: i for i, n in enumerate(names)}
+    regs = sorted((pos[rec.images[i].name], i) for i in rec.reg_image_ids())
+    centres = np.array([rec.images[i].projection_center() for _, i in regs]).reshape(-1, 3)
+    return pose_jumps(centres, np.array([f for f, _ in regs], dtype=np.int64))
+
+
+def remap_jumps(
+    database: Path,
+    image_dir: Path,
+    work: Path,
+    model: Path,
+    jumps: list[int],
+    names: list[str],
+    opts: SfmOptions,
+    refine_camera: bool,
+    on_register: Callable[[int], None],
+) -> tuple[str, dict[str, Any]]:
+    """Deregister the ``jumps`` frames of ``model`` and resume mapping (the extension pass's
+    relaxed thresholds) into ``work/unjumped``, so that they register again against the settled
+    points.
+
+    A frame registered early, against few points of distant structure, can take a pose that
+    fits its points but not the flight (a sideways shift traded for a rotation); later the
+    points are many and its PnP finds the right pose (Himax test_15: frame 19 re-registers on
+    its neighbours' path). Returns the model folder to keep (the new one when it has as many
+    frames and fewer jumps) and a record for the report.
+    """
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(model)
+    size = rec.num_reg_images()
+    for image_id in list(rec.reg_image_ids()):
+        if names.index(rec.images[image_id].name) in jumps:
+            rec.deregister_frame(rec.images[image_id].frame_id)
+    start = work / "unjumped_start"
+    start.mkdir(parents=True, exist_ok=True)
+    rec.write(start)
+    found = incremental_map(
+        database, image_dir, work / "unjumped", opts, refine_camera, on_register, start
+    )
+    record: dict[str, Any] = {"frames": jumps, "kept": False}
+    if found:
+        k = max(found, key=lambda j: found[j]["frames"])
+        left = jump_frames(Path(k), names)
+        if found[k]["frames"] >= size and len(left) < len(jumps):
+            record.update(kept=True, still_jumping=left)
+            return k, record
+    return str(model), record
 
 
 def refine_camera_of(model: Path, out: Path) -> str:
