@@ -95,23 +95,12 @@ def run(args: Settings) -> int:
 
     from dronecap.federated import run as fed
 
+    same_name = {f.name for f in dataclasses.fields(fed.FedSettings)} & set(vars(args))
     s = fed.FedSettings(
         shards=[str(p) for p in shards],
         cfg=dataclasses.asdict(cfg),
-        pretrain=args.pretrain,
-        local_steps=args.local_steps,
-        rounds=args.rounds,
-        exchange_grid=args.exchange_grid,
-        transfer_dtype=args.transfer_dtype,
-        compress=args.compress,
-        server_lr=args.server_lr,
-        server_momentum=args.server_momentum,
-        eval_views=args.eval_views,
-        round_timeout=args.round_timeout,
-        fail_client=args.fail_client,
-        fail_round=args.fail_round,
-        seed=args.seed,
         shard_sha256=[sha256_file(p) for p in shards],
+        **{name: getattr(args, name) for name in same_name},  # the run's options, by name
     )
     if (out / fed.SETTINGS).exists() and (old := fed.load_settings(out)) != s:
         what = "settings"
