@@ -29,11 +29,11 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
-DATA = REPO.parent / "shared" / "data"
+from snapshot import DATA, RESULTS
+
 HIMAX = DATA / "himax_hm01b0"
 LEGO = DATA / "nerf_synthetic_160" / "lego"
 DRONECAP = [sys.executable, "-m", "dronecap.cli"]
@@ -50,12 +50,13 @@ FLOORS = {  # case -> (registered %, ATE %, rotation deg, scale error %, gravity
 
 
 def dronecap(args: list[str], log: Path) -> int:
-    """Run ``dronecap ARGS`` single-threaded, output appended to ``log``; the exit code."""
+    """Run ``dronecap ARGS`` single-threaded in the log's folder (never in the repository, whose
+    ``dronecap/`` folder would shadow a snapshot), output appended to ``log``; the exit code."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "DRONECAP_PROGRESS": "off"}
     with open(log, "a") as f:
         f.write(f"$ dronecap {' '.join(args)}\n")
         f.flush()
-        return subprocess.call([*DRONECAP, *args], stdout=f, stderr=f, env=env)
+        return subprocess.call([*DRONECAP, *args], stdout=f, stderr=f, env=env, cwd=log.parent)
 
 
 def lego_video(path: Path) -> Path:
@@ -97,13 +98,13 @@ def slug(name: str) -> str:
     return name.replace(" ", "_").replace("(", "").replace(")", "").replace(",", "")
 
 
-def run_case(name: str, work: Path, n_sim: int) -> dict:
-    """Ingest + sfm of one case in ``work/<slug>``; a table row."""
+def run_case(name: str, work: Path, n_sim: int, sfm_extra: Sequence[str] = ()) -> dict:
+    """Ingest + sfm (with ``sfm_extra`` options) of one case in ``work/<slug>``; a table row."""
     d = work / slug(name)
     d.mkdir(parents=True, exist_ok=True)
     log = d / "log.txt"
     log.write_text("")
-    sfm_args: list[str] = ["sfm", "--workdir", str(d), "--quiet", "--threads", "1"]
+    sfm_args: list[str] = ["sfm", "--workdir", str(d), "--quiet", "--threads", "1", *sfm_extra]
     if name.startswith("himax"):
         seq = name.split()[1]
         source = HIMAX / seq

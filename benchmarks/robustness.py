@@ -30,10 +30,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from snapshot import RESULTS, rerun_on_snapshot
 from snapshot import dronecap_command as sh
-from snapshot import rerun_on_snapshot
 
-RESULTS = Path(__file__).parent / "results"
 # case -> (simulate flags, kind): "geometric"/"timing" judged on their own test views,
 # "photometric" also against noise-free renders of the test poses
 CASES: dict[str, tuple[list[str], str]] = {
@@ -301,11 +300,11 @@ def main() -> None:
     load = open("/proc/loadavg").read().split()[:3]
     text = table(recs, args, f"load average {' '.join(load)} at the end (2 cores)")
     print(text)
-    results = Path(os.environ.get("DRONECAP_RESULTS", RESULTS))
-    results.mkdir(exist_ok=True)
-    (results / f"{args.results}.md").write_text(text)
-    plot(recs, results / f"{args.results}.png")
-    print(f"wrote {results / args.results}.md/.png")
+
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{args.results}.md").write_text(text)
+    plot(recs, RESULTS / f"{args.results}.png")
+    print(f"wrote {RESULTS / args.results}.md/.png")
 
 
 if __name__ == "__main__":

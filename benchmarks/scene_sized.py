@@ -25,14 +25,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
-from snapshot import DATA, dronecap_command, rerun_on_snapshot
+from snapshot import DATA, RESULTS, dronecap_command, rerun_on_snapshot
 
-RESULTS = Path(__file__).parent / "results"
 LEGO = DATA / "nerf_synthetic_160" / "lego"
 HIMAX = DATA / "himax_hm01b0" / "test_23"
 CONFIGS = ("scene-sized", "tiny-dronerf", "b32k-t14")
@@ -175,11 +173,11 @@ def main() -> None:
     load = "load average " + " ".join(open("/proc/loadavg").read().split()[:3]) + " at the end"
     text = table(rows, args.steps, load)
     print(text)
-    results = Path(os.environ.get("DRONECAP_RESULTS", RESULTS))
-    results.mkdir(exist_ok=True)
-    (results / "scene_sized.md").write_text(text)
-    plot(rows, results / "scene_sized.png")
-    print(f"wrote {results / 'scene_sized'}.md/.png", file=sys.stderr)
+
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "scene_sized.md").write_text(text)
+    plot(rows, RESULTS / "scene_sized.png")
+    print(f"wrote {RESULTS / 'scene_sized'}.md/.png", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
+# results go to the work tree's benchmarks/results, from a snapshot too (it inherits this by env)
+RESULTS = Path(os.environ.get("DRONECAP_RESULTS", REPO / "benchmarks" / "results"))
 # the real data next to the repository (a snapshot lives elsewhere: it inherits this by env)
 DATA = Path(os.environ.get("DRONECAP_DATA", REPO.parent / "shared" / "data"))
 PACKAGES = ("capture", "sfm", "datasets", "nerf", "camera", "simulator", "federated", "gap9")

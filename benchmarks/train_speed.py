@@ -200,8 +200,8 @@ def main() -> None:
     ]
     text = "\n".join(lines) + "\n"
     print(text)
-    results = Path(os.environ.get("DRONECAP_RESULTS", RESULTS))
-    (results / "train_speed.md").write_text(text)
+
+    (RESULTS / "train_speed.md").write_text(text)
 
 
 if __name__ == "__main__":
