@@ -8,18 +8,16 @@ from pathlib import Path
 import numpy as np
 
 from dronecap.camera.calibrate import COVERAGE_GRID, Calibration, View
+from dronecap.plots import pyplot, save_png
 
 
-def plot_calibration(cal: Calibration, views: list[View], path: str | Path) -> None:
+def plot_calibration(cal: Calibration, views: list[View], path: str | Path) -> Path | None:
     """Write a PNG: left, the corners of the used views over the image frame; right, the
-    per-view RMS error (px) with the overall RMS as a line."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from dronecap.files import atomic_output
-
+    per-view RMS error (px) with the overall RMS as a line. Returns its path, None when
+    matplotlib is not installed (the figure skipped, see :mod:`dronecap.plots`)."""
+    plt = pyplot()
+    if plt is None:
+        return None
     w, h = cal.camera.width, cal.camera.height
     used = [v for v in views if v.name in cal.view_errors]
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2), width_ratios=(1.2, 1))
@@ -43,7 +41,4 @@ def plot_calibration(cal: Calibration, views: list[View], path: str | Path) -> N
     bx.set_ylabel("RMS reprojection error (px)")
     bx.set_title("per-view error")
     bx.legend(loc="upper right")
-    fig.tight_layout()
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    return save_png(fig, path)

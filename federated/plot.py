@@ -1,26 +1,30 @@
-"""The PSNR-vs-step figure of federated runs (the paper's Figure: IID vs non-IID panels)."""
+"""The PSNR-vs-step figure of federated runs (the paper's Figure: IID vs non-IID panels).
+
+:func:`save_png` (from :mod:`dronecap.plots`) is re-exported for the benchmarks' figures.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from dronecap.files import atomic_output
+from dronecap.plots import pyplot, save_png
 
 SINGLE_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:olive")
 
 
-def plot_runs(panels: dict[str, dict], path: str | Path) -> Path:
+def plot_runs(panels: dict[str, dict], path: str | Path) -> Path | None:
     """One panel per run: global-model PSNR per round, and the baselines' curves.
 
     Args:
         panels: title -> a ``rounds.json`` document ({"rounds": [...], "baselines": {...}}).
         path: PNG to write (atomically).
+
+    Returns:
+        ``path``, or None when matplotlib is not installed (the figure skipped).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
+    if plt is None:
+        return None
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), squeeze=False)
     for ax, (title, doc) in zip(axes[0], panels.items(), strict=True):
         rounds = doc.get("rounds", [])
@@ -49,14 +53,3 @@ def plot_runs(panels: dict[str, dict], path: str | Path) -> Path:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     return save_png(fig, path)
-
-
-def save_png(fig, path: str | Path) -> Path:
-    """Lay out ``fig`` (a matplotlib Figure), write it as a PNG atomically, and close it."""
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return Path(path)

@@ -20,6 +20,7 @@ from pathlib import Path
 from dronecap.gap9.model import cost_report
 from dronecap.gap9.platform import Platform
 from dronecap.nerf.config import TrainConfig, config_from_dict, preset
+from dronecap.plots import pyplot, save_png
 
 # The sweep: batch B, log2(T), image side, occupancy grid side, MLP width, hash levels.
 SEARCH_GRID: dict[str, tuple] = {
@@ -161,17 +162,13 @@ def pareto_plot(
     out: Path,
     budget_mb: float | None,
     title: str,
-) -> None:
+) -> Path | None:
     """Write the memory-vs-PSNR PNG: marker per batch size, log2(T) beside each point, the
-    Pareto front, the L3 budget as a vertical line, the chosen point circled in red."""
-    import matplotlib
-    import matplotlib.ticker
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from dronecap.files import atomic_output
-
+    Pareto front, the L3 budget as a vertical line, the chosen point circled in red. Returns
+    ``out``, or None when matplotlib is not installed (the figure skipped)."""
+    plt = pyplot()
+    if plt is None:
+        return None
     markers = ["o", "s", "^", "D", "v", "P", "X", "*"]
     batches = sorted({q.cfg.batch_samples for q in points})
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
@@ -194,13 +191,10 @@ def pareto_plot(
     ax.set_xscale("log")
     ticks = [t for t in (2, 5, 10, 20, 30, 50, 100, 200, 500, 1000) if _in_range(t, points)]
     ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
-    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ax.xaxis.set_minor_formatter(plt.NullFormatter())
     ax.set_xlabel("memory, modelled untiled footprint [MB]")
     ax.set_ylabel("PSNR [dB]")
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_output(out) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
+    return save_png(fig, out, dpi=120)

@@ -217,12 +217,13 @@ def _search(args: Settings) -> int:
     chosen = choose(points, args.tolerance_db)
     out = Path(args.plot) if args.plot else workspace.resolve(args.workdir, None, "pareto.png")
     budget_mb = None if budget.l3 is None else budget.l3 / 1e6
-    pareto_plot(points, chosen, out, budget_mb, f"memory vs PSNR: {title}")
+    drawn = pareto_plot(points, chosen, out, budget_mb, f"memory vs PSNR: {title}")
     if chosen is None:
         print(f"no {'run' if args.runs else 'Table II row'} fits the budget")
     else:
         print(f"chosen: {chosen.label} ({chosen.mem_mb:.1f} MB, {chosen.psnr:.2f} dB; {title})")
-    print(f"wrote {out}")
+    if drawn is not None:
+        print(f"wrote {drawn}")
     return 0
 
 

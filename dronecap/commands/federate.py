@@ -133,9 +133,9 @@ def run(args: Settings) -> int:
     from dronecap.federated.plot import plot_runs
 
     doc = json.loads((out / fed.ROUNDS).read_text())
-    plot_runs({f"{args.scheme} ({s.n_clients} drones)": doc}, out / "psnr.png")
+    png = plot_runs({f"{args.scheme} ({s.n_clients} drones)": doc}, out / "psnr.png")
     _summary(doc)
-    print(f"wrote {out}: rounds.json, psnr.png, checkpoint.pt")
+    print(f"wrote {out}: rounds.json, {'psnr.png, ' if png else ''}checkpoint.pt")
     return 0
 
 
