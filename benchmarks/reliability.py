@@ -22,9 +22,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import h5py
-import numpy as np
-
 from dronecap.datasets.blender import import_blender
 from dronecap.datasets.format import Dataset, DatasetError, open_dataset, write_dataset
 
@@ -34,32 +31,6 @@ OUT = REPO / "benchmarks" / "results" / "reliability.md"
 REPEAT = 5
 HANG_S = 20  # a read of the small file normally takes ~10 ms
 sys.path.insert(0, str(REPO))
-
-
-def as_version_1(src: Path, dst: Path) -> Path:
-    """The contents of ``src`` in the version 1 layout: no filters but lzf on images/alpha,
-    HDF5's default (oldest) metadata layout, variable-length strings, format_version 1."""
-    with h5py.File(src, "r") as f, h5py.File(dst, "w") as g:
-        for k, v in f.attrs.items():
-            g.attrs[k] = v.decode() if isinstance(v, bytes) else v
-        g.attrs["format_version"] = 1
-
-        def copy(name: str, obj: object) -> None:
-            if not isinstance(obj, h5py.Dataset):
-                return
-            data = obj[()]
-            if data.dtype.kind == "S":
-                data = np.array([s.decode() for s in data], dtype=h5py.string_dtype())
-            lzf = name in ("images", "alpha") and data.size
-            g.create_dataset(
-                name,
-                data=data,
-                chunks=(1, *data.shape[1:]) if lzf else None,
-                compression="lzf" if lzf else None,
-            )
-
-        f.visititems(copy)
-    return dst
 
 
 OUTCOMES = ("harmless", "silently different", "rejected", "other exception")
@@ -111,7 +82,7 @@ def timed(fn, repeat: int = REPEAT) -> float:
 
 
 def main() -> None:
-    from tests.reliability.conftest import small_dataset
+    from tests.reliability.conftest import as_version_1, small_dataset
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

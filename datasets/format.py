@@ -29,6 +29,12 @@ the checksummed blocks, not in HDF5's unchecked global heap). A flipped byte any
 matters is therefore a read error, never a different image or pose. Version 1 files (no
 checksums) are still read.
 
+A file whose superblock is not the checksummed one (version 1 files, foreign HDF5 files) is
+first read in a forked child process (:mod:`dronecap.datasets.probe`): damage that makes HDF5 crash
+the process (a segfault) or loop forever becomes a one-line :class:`DatasetError` instead. What
+no reader can detect without checksums: a flipped bit in an image, a pose or any other stored
+number that leaves the value valid (finite, rigid, in range) reads back as a different dataset.
+
 Validation (:meth:`Dataset.validate`, run on every write and every read; the checks are in
 :mod:`dronecap.datasets.checks`) checks the schema,
 dtypes and shapes, finite values, rigid camera rotations, the camera (``Camera.problems``), an
@@ -52,6 +58,7 @@ import numpy as np
 from dronecap.camera import Camera
 from dronecap.datasets import checks
 from dronecap.datasets.checks import KINDS, SPLITS, describe
+from dronecap.datasets.probe import checksummed_layout, survives_reading
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, require_free_space
 
@@ -114,14 +121,15 @@ class Dataset:
         return np.flatnonzero(self.split == SPLITS[split])
 
     def same_as(self, other: Dataset) -> bool:
-        """Every field equal to ``other``'s (arrays exactly): a file read back is the same data."""
+        """Every field equal to ``other``'s (arrays exactly, NaN where NaN): a file read back is
+        the same data."""
         for f in dataclasses.fields(Dataset):
             x, y = getattr(self, f.name), getattr(other, f.name)
             if isinstance(x, dict) and any(isinstance(v, np.ndarray) for v in x.values()):
-                if x.keys() != y.keys() or any(not np.array_equal(x[k], y[k]) for k in x):
+                if x.keys() != y.keys() or any(not _same_array(x[k], y[k]) for k in x):
                     return False
             elif isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
-                if x is None or y is None or not np.array_equal(x, y):
+                if x is None or y is None or not _same_array(x, y):
                     return False
             elif x != y:
                 return False
@@ -161,6 +169,12 @@ class Dataset:
     def problem(self) -> str | None:
         """The first thing wrong with this dataset ("<field>: <problem>"), or None."""
         return checks.problem(self)
+
+
+def _same_array(a: np.ndarray, b: np.ndarray) -> bool:
+    """Same shape and values; NaN equals NaN in float arrays (a score that was not measured)."""
+    a, b = np.asarray(a), np.asarray(b)
+    return np.array_equal(a, b, equal_nan=a.dtype.kind in "fc" and b.dtype.kind in "fc")
 
 
 def provenance(stage: str, params: dict[str, Any], inputs: dict[str, str]) -> dict[str, Any]:
@@ -312,6 +326,13 @@ def open_dataset(path: str | Path, kinds: tuple[str, ...] | None = None) -> Data
             mismatch included).
     """
     path = Path(path)
+    if path.is_file() and not checksummed_layout(path):
+        survives_reading(path, lambda p: _read_dataset(p, None), DatasetError)
+    return _read_dataset(path, kinds)
+
+
+def _read_dataset(path: Path, kinds: tuple[str, ...] | None) -> Dataset:
+    """:func:`open_dataset` without the probe: may crash the process on a damaged v1 file."""
     attrs = read_header(path)
     kind = attrs.get("kind")
     if not isinstance(kind, str) or kind not in KINDS:

@@ -10,10 +10,14 @@ from __future__ import annotations
 import contextlib
 import io
 import signal
+import subprocess
+import sys
+import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 
@@ -21,6 +25,7 @@ from dronecap.cli import main
 from dronecap.datasets.format import Dataset, Intrinsics, provenance, write_dataset
 
 N, H, W = 12, 10, 12
+KILL_FRACTIONS = (0.2, 0.4, 0.6, 0.8, 0.95)  # kill -9 points, in parts of an uninterrupted run
 AABB = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
 
 
@@ -63,6 +68,32 @@ def small_dataset(kind: str, channels: int) -> Dataset:
         ds.alpha = rng.integers(0, 256, (N, H, W), dtype=np.uint8)
         ds.background = (0.0,) * channels
     return ds
+
+
+def as_version_1(src: Path, dst: Path) -> Path:
+    """The contents of ``src`` in the version 1 layout: no filters but lzf on images/alpha,
+    HDF5's default (oldest) metadata layout, variable-length strings, format_version 1."""
+    with h5py.File(src, "r") as f, h5py.File(dst, "w") as g:
+        for k, v in f.attrs.items():
+            g.attrs[k] = v.decode() if isinstance(v, bytes) else v
+        g.attrs["format_version"] = 1
+
+        def copy(name: str, obj: object) -> None:
+            if not isinstance(obj, h5py.Dataset):
+                return
+            data = obj[()]
+            if data.dtype.kind == "S":
+                data = np.array([s.decode() for s in data], dtype=h5py.string_dtype())
+            lzf = name in ("images", "alpha") and data.size
+            g.create_dataset(
+                name,
+                data=data,
+                chunks=(1, *data.shape[1:]) if lzf else None,
+                compression="lzf" if lzf else None,
+            )
+
+        f.visititems(copy)
+    return dst
 
 
 @pytest.fixture(autouse=True)
@@ -130,3 +161,36 @@ def run_cli(argv: list[str], timeout_s: int = 60) -> Outcome:
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, old)
+
+
+def dronecap(*argv: str, cwd: Path) -> subprocess.Popen:
+    """``dronecap -q ARGV`` started in a fresh process in ``cwd`` (stderr kept for the test)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "dronecap.cli", "-q", *argv],
+        cwd=cwd,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def complete(argv: list[str], cwd: Path) -> float:
+    """Run ``dronecap ARGV`` to the end (it must succeed); its wall time in seconds."""
+    t0 = time.perf_counter()
+    p = dronecap(*argv, cwd=cwd)
+    _, err = p.communicate(timeout=1200)
+    assert p.returncode == 0, err
+    return time.perf_counter() - t0
+
+
+def kill_at(argv: list[str], cwd: Path, delay_s: float) -> None:
+    """Start ``dronecap ARGV`` and SIGKILL it after ``delay_s`` seconds (if still running)."""
+    p = dronecap(*argv, cwd=cwd)
+    time.sleep(delay_s)
+    p.send_signal(signal.SIGKILL)
+    p.wait(timeout=60)
+
+
+def strays(root: Path) -> list[Path]:
+    """Temporary files of :func:`dronecap.files.atomic_output` left under ``root``."""
+    return [p for p in root.rglob("*") if ".tmp-" in p.name or ".old-" in p.name]

@@ -5,17 +5,13 @@ temporary files. (federate: tests/federated/test_run.py.) Slow: real processes, 
 from __future__ import annotations
 
 import dataclasses
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dronecap.datasets.format import DatasetError, open_dataset, write_dataset
-from tests.reliability.conftest import ring_poses, small_dataset
+from tests.reliability.conftest import complete, kill_at, ring_poses, small_dataset, strays
 
 pytestmark = pytest.mark.slow
 DELAYS_S = (0.5, 1.0, 1.5, 2.5, 4.0)
@@ -40,33 +36,6 @@ def big_posed(tmp_path_factory: pytest.TempPathFactory) -> Path:
         extra={},
     )
     return write_dataset(tmp_path_factory.mktemp("big") / "posed.h5", ds)
-
-
-def dronecap(*argv: str, cwd: Path) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "dronecap.cli", "-q", *argv],
-        cwd=cwd,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
-def kill_at(argv: list[str], cwd: Path, delay_s: float) -> None:
-    p = dronecap(*argv, cwd=cwd)
-    time.sleep(delay_s)
-    p.send_signal(signal.SIGKILL)
-    p.wait(timeout=60)
-
-
-def complete(argv: list[str], cwd: Path) -> None:
-    p = dronecap(*argv, cwd=cwd)
-    _, err = p.communicate(timeout=1200)
-    assert p.returncode == 0, err
-
-
-def strays(root: Path) -> list[Path]:
-    return [p for p in root.rglob("*") if ".tmp-" in p.name]
 
 
 def same_arrays(a: Path, b: Path) -> None:
