@@ -13,20 +13,17 @@ the every-8th test split of ``dronecap split``.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from dronecap.datasets.format import Dataset, Intrinsics, provenance, write_dataset
+from dronecap.datasets.format import Intrinsics, provenance, write_dataset
 from dronecap.datasets.import_scene import (
     check_options,
-    points_extra,
+    imported_dataset,
     read_images,
-    resized_camera,
     scene_bounds,
-    white_background,
 )
 from dronecap.errors import InputError
 
@@ -123,36 +120,25 @@ def import_colmap(
             f"for {k0.width}x{k0.height}",
             images_dir,
         )
-    k = resized_camera(k0, imgs.images)
     b = scene_bounds(c2w, points, seen)
     model_files = sorted(p for p in model_dir.iterdir() if p.is_file())
-    ds = Dataset(
-        images=imgs.images,
-        kind="dataset",
-        alpha=imgs.alpha,
-        poses=b.poses,
-        intrinsics=k,
-        names=names,
-        source_index=np.arange(len(names), dtype=np.int64),
-        split=every_kth_split(np.arange(len(names))),
-        near_far=b.near_far,
-        aabb=b.aabb,
-        normalization=b.normalization,
-        background=white_background(imgs.images.shape[3], imgs.alpha),
-        extra=points_extra(b.points[b.inliers], colors[b.inliers]),
-        provenance=provenance(
+    ds = imported_dataset(
+        imgs,
+        k0,
+        b,
+        names,
+        every_kth_split(np.arange(len(names))),
+        colors,
+        provenance(
             "import-colmap",
             {"model": str(model_dir), "images": str(images_dir), "size": size, "color": color},
             {p.name: sha256_file(p) for p in model_files},
         ),
-        attrs={
+        {
             "source": "colmap",
-            "source_size": list(imgs.source_size),
-            "source_camera": dataclasses.asdict(k0),
             "colmap_registered": len(names),
             "colmap_images": int(rec.num_images()),
             "colmap_points": int(len(points)),
-            "bounds_from": b.bounds_from,
         },
     )
     return write_dataset(out_path, ds)

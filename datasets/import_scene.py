@@ -18,12 +18,14 @@ Both ``import-transforms`` and ``import-colmap`` end here:
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from dronecap.datasets.format import Intrinsics
+from dronecap.datasets.format import Dataset, Intrinsics
 from dronecap.errors import InputError
 
 COLORS = ("auto", "rgb", "gray")
@@ -166,6 +168,56 @@ def scene_bounds(
             aabb, how = carved, "alpha carving"
     nf = near_far(poses, aabb, [pts[s] for s in seen])
     return Bounds(poses, pts, norm.inliers, aabb, nf, norm.matrix, how)
+
+
+def imported_dataset(
+    imgs: Images,
+    source_camera: Intrinsics,
+    bounds: Bounds,
+    names: list[str],
+    split: np.ndarray,
+    colors: np.ndarray | None,
+    provenance: dict[str, Any],
+    attrs: dict[str, Any],
+    normalization: np.ndarray | None = None,
+) -> Dataset:
+    """The dataset (kind "dataset") an importer writes, one frame per image in source order.
+
+    Args:
+        imgs: the images as stored, with the size of the files.
+        source_camera: the camera of the files (resized here with the images).
+        bounds: poses and bounds from :func:`scene_bounds`.
+        names: [N] frame names.
+        split: int8 [N] split codes.
+        colors: uint8 [P, 3] colours of the bounds' points, or None (stored black).
+        provenance: :func:`dronecap.datasets.format.provenance` of the import.
+        attrs: the importer's own attributes ("source", counts); the source size, the source
+            camera and what the bounds came from are added.
+        normalization: [4, 4] source-to-scene transform when not the bounds' own.
+    """
+    inliers = bounds.inliers
+    return Dataset(
+        images=imgs.images,
+        kind="dataset",
+        alpha=imgs.alpha,
+        poses=bounds.poses,
+        intrinsics=resized_camera(source_camera, imgs.images),
+        names=names,
+        source_index=np.arange(len(names), dtype=np.int64),
+        split=split,
+        near_far=bounds.near_far,
+        aabb=bounds.aabb,
+        normalization=bounds.normalization if normalization is None else normalization,
+        background=white_background(imgs.images.shape[3], imgs.alpha),
+        extra=points_extra(bounds.points[inliers], None if colors is None else colors[inliers]),
+        provenance=provenance,
+        attrs={
+            **attrs,
+            "source_size": list(imgs.source_size),
+            "source_camera": dataclasses.asdict(source_camera),
+            "bounds_from": bounds.bounds_from,
+        },
+    )
 
 
 def points_extra(points: np.ndarray, colors: np.ndarray | None) -> dict[str, np.ndarray]:

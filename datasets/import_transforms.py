@@ -25,7 +25,6 @@ get the every-8th test split of ``dronecap split``.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -33,15 +32,14 @@ from typing import Any
 import numpy as np
 
 from dronecap.datasets.blender import opengl_to_opencv
-from dronecap.datasets.format import SPLITS, Dataset, Intrinsics, provenance, write_dataset
+from dronecap.datasets.format import SPLITS, Intrinsics, provenance, write_dataset
 from dronecap.datasets.import_scene import (
     check_options,
-    points_extra,
+    imported_dataset,
     read_images,
     resized_camera,
     scene_bounds,
     visible_points,
-    white_background,
 )
 from dronecap.errors import InputError
 from dronecap.files import sha256_file
@@ -195,31 +193,20 @@ def import_transforms(
     if declared is not None and "applied_transform" in top:
         norm = np.vstack([np.asarray(top["applied_transform"], float), [0, 0, 0, 1]])
     names = [str(fr.get("dronecap_name", fr["file_path"])) for fr, *_ in entries]
-    ds = Dataset(
-        images=imgs.images,
-        kind="dataset",
-        alpha=imgs.alpha,
-        poses=b.poses,
-        intrinsics=k,
-        names=names,
-        source_index=np.arange(len(entries), dtype=np.int64),
-        split=split,
-        near_far=b.near_far,
-        aabb=b.aabb,
-        normalization=norm,
-        background=white_background(imgs.images.shape[3], imgs.alpha),
-        extra=points_extra(b.points[b.inliers], None if colors is None else colors[b.inliers]),
-        provenance=provenance(
+    ds = imported_dataset(
+        imgs,
+        k0,
+        b,
+        names,
+        split,
+        colors,
+        provenance(
             "import-transforms",
             {"src": str(src), "size": size, "color": color},
             {p.name: sha256_file(p) for p, _ in sources},
         ),
-        attrs={
-            "source": "transforms.json",
-            "source_size": list(imgs.source_size),
-            "source_camera": dataclasses.asdict(k0),
-            "bounds_from": b.bounds_from,
-        },
+        {"source": "transforms.json"},
+        normalization=norm,
     )
     return write_dataset(out_path, ds)
 
