@@ -65,14 +65,14 @@ def measure_steps(args: argparse.Namespace) -> None:
 
     torch.set_num_threads(1)
     tr = Trainer(preset(args.preset), lego(Path(args.cache)), backend=args.backend)
-    tr.train(args.warm, progress=False)
+    tr.train(args.warm)
     for threads in (1, 2):
         torch.set_num_threads(threads)
-        tr.train(4, progress=False)
+        tr.train(4)
         wall, cpu, logs = [], [], []
         for _ in range(args.repeats):
             t0, c0 = time.perf_counter(), time.process_time()
-            logs = tr.train(args.window, progress=False)
+            logs = tr.train(args.window)
             wall.append(1000 * (time.perf_counter() - t0) / args.window)
             cpu.append(1000 * (time.process_time() - c0) / args.window)
         samples = float(np.mean([lg["samples"] for lg in logs]))
@@ -105,7 +105,7 @@ def render_rows(args: argparse.Namespace, name: str, ds) -> list[tuple[str, str,
 
     torch.set_num_threads(2)
     tr = Trainer(preset("scene-sized").replace(steps=args.trained), ds)
-    tr.train(args.trained, progress=False)
+    tr.train(args.trained)
     views = np.flatnonzero(ds.split == 2)
     views = views[:: max(1, len(views) // 5)][:5]
     rows, exact = [], None

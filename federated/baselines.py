@@ -86,7 +86,7 @@ def run_baseline(
     test = test_split(s.shards[0], s.eval_views)
     last = curve[-1]["steps"] if curve else -1
     for m in [m for m in (marks(s) if curve_marks else marks(s)[-1:]) if m > last]:
-        trainer.train(max(m - trainer.step, 0), progress=False)
+        trainer.train(max(m - trainer.step, 0))
         with atomic_output(ckpt) as tmp:
             trainer.save(tmp)
         metrics = trainer.evaluate(test)

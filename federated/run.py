@@ -208,7 +208,7 @@ def _local_round(msg: Message, context: Context, pretrain: bool) -> Message:
         if prev < 0:
             trainer.step = s.pretrain  # join the coordinator's learning-rate schedule
     t0 = time.perf_counter()
-    trainer.train(s.pretrain if pretrain else s.local_steps, progress=False)
+    trainer.train(s.pretrain if pretrain else s.local_steps)
     train_s = time.perf_counter() - t0
     with atomic_output(round_file(folder, r)) as tmp:
         trainer.save(tmp)

@@ -22,7 +22,6 @@ import torch
 from dronecap.camera import Camera
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
-from dronecap.progress import progress_bar
 
 from . import occupancy
 from .checkpoint import checkpoint_resolved, read_checkpoint, write_checkpoint
@@ -274,32 +273,14 @@ class Trainer:
             "skipped": not ok,
         }
 
-    def train(self, steps: int, progress: bool = True) -> list[dict]:
-        """Run ``steps`` more optimizer steps from ``self.step``; per-step logs."""
+    def train(self, steps: int) -> list[dict]:
+        """Run ``steps`` more optimizer steps from ``self.step``, quietly; per-step logs. (A
+        run folder's loop, with budgets, checks, checkpoints and progress, is
+        :func:`nerf.run_dir.train_run`; this is the bare loop federated clients and tests use.)"""
         if self.images is None:
             raise InputError("trainer has no training data (pass `train=` to Trainer.load)")
         self.field.train()
-        logs = []
-        bar = progress_bar(
-            range(steps),
-            desc="train",
-            unit="step",
-            disable=not progress,
-            initial=0,
-            dynamic_ncols=True,
-        )
-        for _ in bar:
-            log = self.train_step()
-            logs.append(log)
-            if progress and (self.step % 10 == 0):
-                bar.set_postfix(
-                    step=self.step,
-                    loss=f"{log['loss']:.4f}",
-                    psnr=f"{log['psnr']:.1f}",
-                    spr=f"{log['samples'] / max(log['rays'], 1):.1f}",
-                    ms=f"{log['ms']:.0f}",
-                )
-        return logs
+        return [self.train_step() for _ in range(steps)]
 
     # ----------------------------------------------------------------------------------------
     # weights and state

@@ -195,7 +195,7 @@ def test_rebuilt_grid_hides_less_than_one_probe_per_cell(cube_rgb):
     from dronecap.nerf.trainer import Trainer
 
     tr = Trainer(preset("test").replace(grid_res=16, steps=600), cube_rgb)
-    tr.train(600, progress=False)
+    tr.train(600)
     pose, k = cube_rgb.poses[1], cube_rgb.intrinsics
     trained = tr.grid
     tr.grid = occupancy.init_state(tr.grid_cfg)  # every cell occupied: nothing skipped

@@ -79,6 +79,6 @@ def test_short_real_lego_run(lego_dir, tmp_path):
     cfg = preset("test").replace(steps=150, batch_samples=4096, grid_res=32, lr_schedule="constant")
     tr = Trainer(cfg, ds)
     before = tr.evaluate(ds, views=[200, 300])["psnr"]
-    tr.train(150, progress=False)
+    tr.train(150)
     after = tr.evaluate(ds, views=[200, 300])["psnr"]
     assert after > before + 3 and after > 15  # learns the scene (test views), not just a blur

@@ -21,7 +21,7 @@ def _grads(tr: Trainer) -> list[torch.Tensor]:
 
 def test_tile_accumulation_equals_full_batch(cube_rgb):
     tr = Trainer(_cfg(batch_samples=2048, tile_samples=2048), cube_rgb)
-    tr.train(3, progress=False)  # leave the all-occupied start
+    tr.train(3)  # leave the all-occupied start
     batch = tr._march_batch()
     assert batch[4].n > 600  # enough samples for several tiles
     tr.optimizer.zero_grad()
@@ -39,7 +39,7 @@ def test_tile_accumulation_equals_full_batch(cube_rgb):
 
 def test_step_count_batch_size_and_learning(cube_rgb):
     tr = Trainer(_cfg(steps=50, lr_schedule="constant"), cube_rgb)
-    logs = tr.train(50, progress=False)
+    logs = tr.train(50)
     assert tr.step == 50 and len(logs) == 50
     assert all(log["samples"] <= 1024 for log in logs)
     # the ray count adapts so that late steps use most of the sample budget
@@ -50,7 +50,7 @@ def test_step_count_batch_size_and_learning(cube_rgb):
 
 def test_transient_nan_is_skipped_and_persistent_nan_stops(cube_rgb):
     tr = Trainer(_cfg(), cube_rgb)
-    tr.train(2, progress=False)
+    tr.train(2)
     before = tr.model_weights()
     draw = tr._draw_rays
 
@@ -64,7 +64,7 @@ def test_transient_nan_is_skipped_and_persistent_nan_stops(cube_rgb):
     after = tr.model_weights()
     assert all(np.array_equal(before[k], after[k]) for k in before)
     with pytest.raises(TrainingDiverged, match="non-finite"):
-        tr.train(30, progress=False)
+        tr.train(30)
     assert all(np.isfinite(v).all() for v in tr.model_weights().values())
     tr._draw_rays = draw
     assert not tr.train_step()["skipped"]  # recovers once the data is sane again
@@ -86,13 +86,13 @@ def test_nan_weights_are_never_saved_or_loaded(cube_rgb, tmp_path):
 
 def test_checkpoint_resume_reproduces_uninterrupted_run(cube_rgb, tmp_path):
     a = Trainer(_cfg(steps=20), cube_rgb)
-    a.train(20, progress=False)
+    a.train(20)
     b = Trainer(_cfg(steps=20), cube_rgb)
-    b.train(8, progress=False)
+    b.train(8)
     b.save(tmp_path / "ck.pt")
     c = Trainer.load(tmp_path / "ck.pt", cube_rgb)
     assert c.step == 8
-    c.train(12, progress=False)
+    c.train(12)
     wa, wc = a.model_weights(), c.model_weights()
     for k in wa:
         np.testing.assert_allclose(wa[k], wc[k], rtol=1e-5, atol=1e-7)
@@ -101,7 +101,7 @@ def test_checkpoint_resume_reproduces_uninterrupted_run(cube_rgb, tmp_path):
 
 def test_weights_and_grid_roundtrip(cube_rgb):
     a = Trainer(_cfg(), cube_rgb)
-    a.train(5, progress=False)
+    a.train(5)
     b = Trainer(_cfg(seed=1), cube_rgb)
     b.load_model_weights(a.model_weights())
     b.load_grid_state(a.grid_state())
@@ -122,7 +122,7 @@ def test_weights_and_grid_roundtrip(cube_rgb):
 @pytest.mark.parametrize("precision", ["fp16", "bf16"])
 def test_low_precision_storage_trains_finite(cube_rgb, precision):
     tr = Trainer(_cfg(precision=precision), cube_rgb)
-    logs = tr.train(8, progress=False)
+    logs = tr.train(8)
     assert not any(log["skipped"] for log in logs)
     table = tr.field.encoding.table.detach()
     dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}[precision]
@@ -136,7 +136,7 @@ def test_gray_head_has_one_channel(cube_gray_h5):
 
     ds = open_dataset(cube_gray_h5)
     tr = Trainer(_cfg(), ds)
-    tr.train(5, progress=False)
+    tr.train(5)
     img = tr.render(ds.poses[0], ds.intrinsics)
     assert img.shape == (24, 24, 1) and img.dtype == np.float32
     assert tr.field.color_mlp[-1].out_features == 1
@@ -150,7 +150,7 @@ def test_render_rays_matches_packed_reference(cube_rgb, monkeypatch):
     from dronecap.nerf.rays import camera_rays, ray_aabb
 
     tr = Trainer(_cfg(), cube_rgb)
-    tr.train(40, progress=False)
+    tr.train(40)
     k = cube_rgb.intrinsics
     vv, uu = torch.meshgrid(torch.arange(k.height), torch.arange(k.width), indexing="ij")
     pose = torch.as_tensor(cube_rgb.poses[0], dtype=torch.float32)
@@ -188,6 +188,6 @@ def test_distorted_lens_trains_better_with_distorted_rays(make_cube):
     scores = {}
     for name, data in (("lens", ds), ("pinhole", ignored)):
         tr = Trainer(cfg, data)
-        tr.train(200, progress=False)
+        tr.train(200)
         scores[name] = tr.evaluate(data)["psnr"]
     assert scores["lens"] > scores["pinhole"] + 1.0, scores
