@@ -97,15 +97,21 @@ def run_variant(args: argparse.Namespace, extra: list[str], env: dict[str, str])
 
 
 def render_rows(args: argparse.Namespace, name: str, ds) -> list[tuple[str, str, str, str]]:
-    """Train the default model --trained steps on ``ds`` (2 threads) and time its renders."""
+    """Train the default model --trained steps on ``ds`` (2 threads; kept in --cache for the
+    next run) and time its renders."""
     import torch
 
     from dronecap.nerf.config import preset
     from dronecap.nerf.trainer import Trainer
 
     torch.set_num_threads(2)
-    tr = Trainer(preset("scene-sized").replace(steps=args.trained), ds)
-    tr.train(args.trained)
+    saved = Path(args.cache) / f"render-{name}-{args.trained}.ckpt"  # trained once, then reused
+    if saved.exists():
+        tr = Trainer.load(saved, train=ds)
+    else:
+        tr = Trainer(preset("scene-sized").replace(steps=args.trained), ds)
+        tr.train(args.trained)
+        tr.save(saved)
     views = np.flatnonzero(ds.split == 2)
     views = views[:: max(1, len(views) // 5)][:5]
     rows, exact = [], None
