@@ -22,33 +22,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import time
 from pathlib import Path
 
+import _runs as shared
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
-RUNS = RESULTS / "time_to_quality"
-LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
+RUNS = shared.RESULTS / "time_to_quality"
 PAPER_GPU = (28.0, 26.94)  # the paper's lego result on a GPU: seconds, dB
-
-
-def open_scene(scene: str, cache: Path):
-    """The dataset of ``scene``: "lego", "lego-gray" (imported once into ``cache``) or a path."""
-    from dronecap.datasets.blender import import_blender
-    from dronecap.datasets.format import open_dataset
-
-    if scene in ("lego", "lego-gray"):
-        gray = scene == "lego-gray"
-        path = cache / ("lego_gray.h5" if gray else "lego.h5")
-        if not path.exists():
-            cache.mkdir(parents=True, exist_ok=True)
-            import_blender(LEGO, path, color="gray" if gray else "rgb", progress=False)
-        return open_dataset(path)
-    return open_dataset(Path(scene))
 
 
 def run(args: argparse.Namespace) -> None:
@@ -69,7 +51,7 @@ def run(args: argparse.Namespace) -> None:
     cfg = preset(args.preset).replace(seed=args.seed, **changes)
     if args.steps:
         cfg = cfg.replace(steps=args.steps)
-    ds = open_scene(args.scene, Path(args.cache))
+    ds = shared.open_scene(args.scene, Path(args.cache))
     test = np.flatnonzero(ds.split == 2)
     pool = np.flatnonzero(ds.split == 1)  # validation views decide stops, test views score
     pool = pool if pool.size else test
@@ -100,54 +82,24 @@ def run(args: argparse.Namespace) -> None:
             ev = tr.evaluate(ds, curve_views)
             tr.field.train()
             curve.append({"step": tr.step, "seconds": cpu, "psnr": ev["psnr"]})
-            _write(args.name, {"name": args.name, "finished": False, "curve": curve})
+            shared.write_run(RUNS, {"name": args.name, "finished": False, "curve": curve})
             print(f"{args.name}: step {tr.step} {cpu:.0f} CPU s psnr {ev['psnr']:.2f}", flush=True)
-    full = tr.evaluate(ds)
-    sub = set(int(i) for i in curve_views)
-    curve_psnr = float(np.mean([v["psnr"] for v in full["per_view"] if v["index"] in sub]))
+    out, curve_psnr = shared.final_record(args, tr, ds, curve_views, ms, t_start)
     curve.append({"step": tr.step, "seconds": cpu, "psnr": curve_psnr})
-    t0 = time.perf_counter()
-    for i in test[:5]:
-        tr.render(ds.poses[i], ds.intrinsics)
-    render_s = (time.perf_counter() - t0) / 5
-    out = {
-        "name": args.name,
+    out |= {
         "scene": args.label or args.scene,
-        "preset": args.preset,
-        "overrides": args.set,
-        "seed": args.seed,
-        "steps": tr.step,
-        "psnr": full["psnr"],
-        "ssim": full["ssim"],
-        "views": full["views"],
         "curve": curve,
         "cpu_seconds": cpu,
-        "train_seconds": tr.train_seconds,
         "budget": dataclasses.asdict(bcfg),
         "stop_reason": state.stop_reason,
-        "wall_seconds": time.time() - t_start,
-        "ms_per_step_median": float(np.median(ms)),
-        "render_seconds": render_s,
-        "parameters": tr.parameter_count(),
-        "n_max": tr.cfg.n_max,
-        "threads": args.threads,
-        "load_average": os.getloadavg()[0],
-        "config": {k: getattr(tr.cfg, k) for k in tr.cfg.__dataclass_fields__},
         "reasons": dict(tr.resolved.reasons),
     }
-    _write(args.name, out | {"finished": True})
+    shared.write_run(RUNS, out | {"finished": True})
     print(
-        f"{args.name}: PSNR {full['psnr']:.2f} SSIM {full['ssim']:.3f} over {full['views']} "
+        f"{args.name}: PSNR {out['psnr']:.2f} SSIM {out['ssim']:.3f} over {out['views']} "
         f"views, {cpu:.0f} CPU s, {np.median(ms):.1f} ms/step (wall), "
-        f"render {render_s:.3f} s/view"
+        f"render {out['render_seconds']:.3f} s/view"
     )
-
-
-def _write(name: str, obj: dict) -> None:
-    RUNS.mkdir(parents=True, exist_ok=True)
-    tmp = RUNS / f".{name}.json.tmp"
-    tmp.write_text(json.dumps(obj, indent=1, default=list) + "\n")
-    tmp.replace(RUNS / f"{name}.json")
 
 
 def gap9_bytes(cfg) -> float:
@@ -157,16 +109,6 @@ def gap9_bytes(cfg) -> float:
     return cost_report(cfg)["memory"]["untiled"]["total"]
 
 
-def memory_mb(cfg_dict: dict) -> float:
-    """Modelled GAP9 memory (MB, Table II accounting) of a run's configuration."""
-    from dronecap.gap9.model import cost_report
-    from dronecap.nerf.config import TrainConfig
-
-    d = {k: v for k, v in cfg_dict.items() if k in TrainConfig.__dataclass_fields__}
-    d["betas"] = tuple(d["betas"])
-    return cost_report(TrainConfig(**d))["memory"]["untiled"]["total"] / 1e6
-
-
 def report(args: argparse.Namespace) -> None:
     """Table and plot of every finished run."""
     import matplotlib
@@ -174,7 +116,7 @@ def report(args: argparse.Namespace) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    runs = [json.loads(p.read_text()) for p in sorted(RUNS.glob("*.json"))]
+    runs = shared.read_runs(RUNS)
     stopped = [r for r in runs if not r.get("finished") and r["curve"]]
     runs = [r for r in runs if r.get("finished")]
     load = os.getloadavg()
@@ -207,24 +149,18 @@ def report(args: argparse.Namespace) -> None:
             f"| {r['name']} | {r['scene']} | {r['preset']} "
             f"{' '.join(r['overrides'])} | {until} | {r['steps']} | {r['psnr']:.2f} | "
             f"{r['ssim']:.3f} | {r['cpu_seconds']:.0f} | {r['ms_per_step_median']:.1f} | "
-            f"{r['render_seconds']:.2f} | {memory_mb(c):.1f} | {sizes} | {r['threads']} | "
+            f"{r['render_seconds']:.2f} | {shared.memory_mb(c):.1f} | {sizes} | {r['threads']} | "
             f"{r['load_average']:.1f} |"
         )
-    if stopped:
-        lines += [
-            "",
-            "Runs that died before their final evaluation (lego; PSNR on every 10th test view, "
-            "20 views, at the last check):",
-            "",
-            "| run | step | train CPU s | PSNR dB (20 views) |",
-            "|---|---:|---:|---:|",
-        ]
-        for r in stopped:
-            c = r["curve"][-1]
-            lines.append(f"| {r['name']} | {c['step']} | {c['seconds']:.0f} | {c['psnr']:.2f} |")
+    lines += shared.stopped_table(
+        stopped,
+        "Runs that died before their final evaluation (lego; PSNR on every 10th test view, "
+        "20 views, at the last check):",
+        "train CPU s",
+    )
     text = "\n".join(lines) + "\n"
     print(text)
-    (RESULTS / "time_to_quality.md").write_text(text)
+    (shared.RESULTS / "time_to_quality.md").write_text(text)
     scenes = sorted({r["scene"] for r in runs})
     fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.2), squeeze=False)
     for ax, scene in zip(axes[0], scenes, strict=True):
@@ -239,29 +175,20 @@ def report(args: argparse.Namespace) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(RESULTS / "time_to_quality.png", dpi=110)
+    fig.savefig(shared.RESULTS / "time_to_quality.png", dpi=110)
 
 
 def main() -> None:
     """Command line."""
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    sub = p.add_subparsers(dest="cmd", required=True)
-    r = sub.add_parser("run")
-    r.add_argument("name")
+    p, r = shared.command_line(__doc__)
     r.add_argument("--scene", default="lego", help="lego, lego-gray or a dataset.h5 path")
     r.add_argument("--label", help="scene name in the table and plot (default: --scene)")
     r.add_argument("--preset", default="tiny-dronerf-sized")
-    r.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     r.add_argument("--steps", type=int, default=0, help="override the preset's step count")
-    r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--threads", type=int, default=1)
     r.add_argument("--eval-every", type=float, default=15.0, help="training CPU seconds")
     r.add_argument("--time-budget", type=float, help="CPU seconds of training (planned)")
     r.add_argument("--target-psnr", type=float, help="stop at this held-out PSNR")
     r.add_argument("--plateau-db", type=float, default=0.0, help="plateau stop (0: none)")
-    r.add_argument("--curve-every-view", type=int, default=10)
-    r.add_argument("--cache", default="/tmp/dronecap_bench")
-    sub.add_parser("report")
     args = p.parse_args()
     run(args) if args.cmd == "run" else report(args)
 

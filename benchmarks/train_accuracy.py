@@ -45,9 +45,7 @@ def run(args: argparse.Namespace) -> None:
         if mark != cfg.steps:
             ev = tr.evaluate(ds, curve_views)
             curve.append({"step": tr.step, "seconds": tr.train_seconds, "psnr": ev["psnr"]})
-            shared.write_run(
-                RUNS, args.name, {"name": args.name, "finished": False, "curve": curve}
-            )
+            shared.write_run(RUNS, {"name": args.name, "finished": False, "curve": curve})
             print(
                 f"{args.name}: step {tr.step} {tr.train_seconds:.0f}s"
                 f" psnr(subset) {ev['psnr']:.2f}",
