@@ -248,7 +248,7 @@ def _argparse_keywords(o: Option) -> dict[str, Any]:
         else:
             kw["nargs"] = "*"
     if m.positional:
-        if default is None and not o.many:
+        if not o.required and default is None and not o.many:
             kw["nargs"] = "?"
         return kw
     if o.required:

@@ -73,6 +73,8 @@ def test_bounds_and_choices_are_one_line_errors() -> None:
         check(Toy(source="a", count=0))
     with pytest.raises(SystemExit):
         _parse(Toy, ["a", "--mode", "medium"])
+    with pytest.raises(SystemExit):
+        _parse(Toy, ["--count", "2"])  # the required argument is missing
 
 
 def test_pipeline_params_are_converted_and_named_in_errors() -> None:
