@@ -31,7 +31,7 @@ import numpy as np
 
 from dronecap.camera import Camera
 from dronecap.cli import main as dronecap
-from dronecap.datasets.blender import import_blender, opencv_to_opengl, opengl_to_opencv
+from dronecap.datasets.blender import import_blender, opencv_to_opengl
 from dronecap.datasets.export import export_transforms
 from dronecap.datasets.format import open_dataset, write_dataset
 from dronecap.datasets.import_transforms import import_transforms
@@ -40,6 +40,8 @@ REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
 OUT = REPO / "benchmarks" / "results" / "interop.md"
 LENS = (-0.28, 0.09, 0.004, -0.003)  # k1 k2 p1 p2 of the synthetic lens (barrel)
+sys.path.insert(0, str(REPO))  # the test suite's loader rules (tests/datasets/interop.py)
+from tests.datasets.interop import reprojection_px  # noqa: E402
 
 
 def flight_export(work: Path) -> dict:
@@ -64,17 +66,8 @@ def flight_export(work: Path) -> dict:
     k = Camera(meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"],
                *(("OPENCV", tuple(meta[n] for n in ("k1", "k2", "p1", "p2")))
                  if meta["camera_model"] == "OPENCV" else ()))  # fmt: skip
-    c2w = {
-        f["file_path"]: opengl_to_opencv(np.array(f["transform_matrix"])) for f in meta["frames"]
-    }
     rec = pycolmap.Reconstruction(str(work / "export" / "colmap" / "sparse" / "0"))
-    errs = []
-    for image in rec.images.values():
-        pose = c2w[f"images/{image.name}"]
-        obs = [p for p in image.points2D if p.has_point3D()]
-        xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs])
-        uv = k.project((xyz - pose[:3, 3]) @ pose[:3, :3])
-        errs += list(np.hypot(*(uv - np.array([p.xy for p in obs])).T))
+    errs = reprojection_px(rec, meta, k)
     t = time.perf_counter()
     back = open_dataset(import_transforms(work / "export", work / "back.h5", progress=False))
     t_import = time.perf_counter() - t

@@ -5,7 +5,9 @@ pycolmap model maker for import tests.
   (``nerfstudio_dataparser.py``) and its image loader need from ``transforms.json`` for
   ``ns-train`` (train and val splits) and ``ns-eval`` (test);
 - :func:`ngp_lens` / :func:`ngp_rules`: what instant-ngp's ``nerf_loader.cu`` reads (focal length
-  lookup order, the four lens slots shared by k3/p1 and k4/p2, ``is_fisheye``, cx needs w).
+  lookup order, the four lens slots shared by k3/p1 and k4/p2, ``is_fisheye``, cx needs w);
+- :func:`reprojection_px`: how far a COLMAP model's observations land from their points seen
+  through an exported ``transforms.json``'s poses.
 No nerfstudio or instant-ngp install is needed: the rules are plain key checks.
 """
 
@@ -188,3 +190,22 @@ def lego_colmap_model(ds, out: Path, n_views: int = 24, n_points: int = 400, see
     (out / "sparse").mkdir()
     rec.write_binary(str(out / "sparse"))
     return s, idx
+
+
+def reprojection_px(rec, meta: dict, camera) -> np.ndarray:
+    """Distance [px] of every observation of the pycolmap Reconstruction ``rec`` from its 3D
+    point projected through ``camera`` (a dronecap Camera) at the pose the transforms.json
+    ``meta`` gives the image (``images/NAME``, camera-to-world, OpenGL axes): float [n_obs]."""
+    from dronecap.datasets.blender import opengl_to_opencv
+
+    c2w = {
+        f["file_path"]: opengl_to_opencv(np.array(f["transform_matrix"])) for f in meta["frames"]
+    }
+    errs = []
+    for image in rec.images.values():
+        pose = c2w[f"images/{image.name}"]
+        obs = [p for p in image.points2D if p.has_point3D()]
+        xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs]).reshape(-1, 3)
+        uv = camera.project((xyz - pose[:3, 3]) @ pose[:3, :3])
+        errs += list(np.hypot(*(uv - np.array([p.xy for p in obs]).reshape(-1, 2)).T))
+    return np.array(errs)

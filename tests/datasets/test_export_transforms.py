@@ -17,7 +17,7 @@ from dronecap.datasets.format import Dataset, Intrinsics, open_dataset, write_da
 from dronecap.datasets.trajectory import read_tum
 from dronecap.errors import InputError
 
-from .interop import lego_colmap_model, nerfstudio_rules, ngp_lens, ngp_rules
+from .interop import lego_colmap_model, nerfstudio_rules, ngp_lens, ngp_rules, reprojection_px
 
 
 def random_poses(n: int, seed: int = 0) -> np.ndarray:
@@ -292,15 +292,4 @@ def test_captured_flight_export_loads_in_both_tools(tmp_path: Path) -> None:
     rec = pycolmap.Reconstruction(str(out / "colmap/sparse/0"))
     assert rec.num_reg_images() == ds.n and rec.num_points3D() > 100
     # every observation reprojects through transforms.json's camera and poses (SfM residuals)
-    k = ds.intrinsics
-    c2w = {
-        f["file_path"]: opengl_to_opencv(np.array(f["transform_matrix"])) for f in meta["frames"]
-    }
-    errs = []
-    for image in rec.images.values():
-        pose = c2w[f"images/{image.name}"]
-        obs = [p for p in image.points2D if p.has_point3D()]
-        xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs])
-        uv = k.project((xyz - pose[:3, 3]) @ pose[:3, :3])
-        errs += list(np.hypot(*(uv - np.array([p.xy for p in obs])).T))
-    assert np.median(errs) < 1.0
+    assert np.median(reprojection_px(rec, meta, ds.intrinsics)) < 1.0
