@@ -11,6 +11,7 @@ descriptors and the sequential matcher is pointed at that file.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -18,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from dronecap.sfm.options import SfmOptions
+from dronecap.sfm.options import FINEST_OCTAVE, SfmOptions
 
 TRAIN_DESCRIPTORS = 20000  # descriptors sampled to train the flight's visual vocabulary
 MIN_KEYPOINTS = 16  # a frame with fewer SIFT keypoints cannot register (reported as textureless)
@@ -64,6 +65,31 @@ def extract(
     )
     with pycolmap.Database.open(database) as db:
         return {im.name: db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()}
+
+
+def extract_finer_when_sparse(
+    database: Path,
+    image_dir: Path,
+    names: list[str],
+    opts: SfmOptions,
+    camera: tuple[str, list[float]] | None,
+) -> tuple[dict[str, int], int]:
+    """:func:`extract` at ``opts.first_octave``; when the frames' median keypoint count is
+    under ``opts.finer_below``, the database is built again one octave finer (never finer
+    than :data:`FINEST_OCTAVE`).
+
+    Returns:
+        (image name -> number of keypoints, the first octave the database holds).
+    """
+    octave = opts.first_octave
+    keypoints = extract(database, image_dir, names, opts, camera)
+    median = float(np.median(list(keypoints.values()))) if keypoints else 0.0
+    if octave > FINEST_OCTAVE and median < opts.finer_below:
+        database.unlink()
+        octave -= 1
+        finer = dataclasses.replace(opts, first_octave=octave)
+        keypoints = extract(database, image_dir, names, finer, camera)
+    return keypoints, octave
 
 
 def build_visual_index(database: Path, out_file: Path, opts: SfmOptions) -> int:

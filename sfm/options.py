@@ -12,6 +12,11 @@ MATCHERS = ("auto", "sequential", "exhaustive")
 CAMERA_MODES = ("auto", "fixed", "refine", "estimate")
 
 
+# SIFT's finest first octave: -2 upsamples 160-px frames 4x, so the detector reaches blobs a
+# quarter pixel across. Finer gives no new structure and costs 4x again.
+FINEST_OCTAVE = -2
+
+
 @dataclass
 class SfmOptions:
     """What COLMAP is asked to do, from features to mapping."""
@@ -21,6 +26,12 @@ class SfmOptions:
     # --- features (SIFT on CPU) ---
     max_features: int = 2048  # SIFT keypoints kept per image (160x160 frames yield ~100-400)
     first_octave: int = -1  # -1 upsamples 2x before the first octave: more features on tiny images
+    # Frames with fewer keypoints than this (median) are extracted again one octave finer (4x
+    # upsampling at -2): real 160-px footage and white-background orbits yield 150-250 at -1,
+    # and at -2 register without retries (Himax test_2, test_15) and pose more accurately (lego
+    # orbit ATE 0.42 -> 0.26 %); textured flights (~580) keep -1, which is 2x faster there
+    # (benchmarks/results/sift_octave.md). 0: never.
+    finer_below: int = 400
     peak_threshold: float = 0.004  # SIFT contrast threshold (COLMAP default 0.0067)
     clahe: bool = False  # contrast-normalise frames (capture.contrast) before SIFT
     # --- matching ---

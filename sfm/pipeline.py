@@ -108,6 +108,7 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         "keypoints_per_frame_median": float(np.median(list(keypoints.values())))
         if keypoints
         else 0.0,
+        "sift_first_octave": summary.get("first_octave"),
         "times": {k: round(v, 3) for k, v in res.times.items()},
     }
 

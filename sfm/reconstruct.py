@@ -23,7 +23,7 @@ import numpy as np
 from dronecap.sfm.camera_plan import CameraPlan
 from dronecap.sfm.colmap_steps import (
     MIN_KEYPOINTS,
-    extract,
+    extract_finer_when_sparse,
     incremental_map,
     initial_pair,
     match,
@@ -71,7 +71,9 @@ def colmap_job(
         return time.perf_counter()
 
     t = phase("extract")
-    out["keypoints"] = extract(db, images, names, opts, camera)
+    out["keypoints"], out["first_octave"] = extract_finer_when_sparse(
+        db, images, names, opts, camera
+    )
     times["extract"] = time.perf_counter() - t
     usable = [n for n in names if out["keypoints"].get(n, 0) >= MIN_KEYPOINTS]
     if len(usable) < 2:

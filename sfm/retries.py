@@ -3,14 +3,14 @@
 The remedies, in order (each only when it applies): exhaustive matching (instead of sequential),
 contrast normalisation before SIFT (CLAHE, :mod:`dronecap.capture.contrast`), more features
 (twice the keypoints, half the contrast threshold), finer SIFT scales (one more upsampling
-octave, down to :data:`FINEST_OCTAVE`), and the known camera kept fixed (when ``--camera
-estimate`` was asked although frames.h5 has a calibrated camera). Each attempt runs on
-top of the best settings so far: a remedy that registered more frames stays, one that did not
-is dropped. The
-loop stops as soon as ``opts.retry_below`` of the frames register, or when ``opts.retry_budget``
-seconds have gone on retries (an attempt already started finishes). The report's ``attempts``
-lists every attempt (remedies in effect, frames registered, seconds) and ``remedy`` names the
-one that produced the kept model.
+octave, down to :data:`dronecap.sfm.options.FINEST_OCTAVE`; not offered when the first attempt
+already went finer for sparse frames), and the known camera kept fixed (when ``--camera
+estimate`` was asked although frames.h5 has a calibrated camera). Each attempt runs on top of
+the best settings so far: a remedy that registered more frames stays, one that did not is
+dropped. The loop stops as soon as ``opts.retry_below`` of the frames register, or when
+``opts.retry_budget`` seconds have gone on retries (an attempt already started finishes). The
+report's ``attempts`` lists every attempt (remedies in effect, frames registered, seconds)
+and ``remedy`` names the one that produced the kept model.
 """
 
 from __future__ import annotations
@@ -23,16 +23,10 @@ from typing import Any
 import numpy as np
 
 from dronecap.sfm.camera_plan import CameraPlan
-from dronecap.sfm.options import SfmOptions
+from dronecap.sfm.options import FINEST_OCTAVE, SfmOptions
 from dronecap.sfm.reconstruct import ColmapResult, reconstruct
 
 MAX_EXHAUSTIVE = 400  # frames: above this exhaustive matching is too slow to be a remedy
-# SIFT's first octave for the "finer SIFT scales" remedy: -2 upsamples 160-px frames 4x, so the
-# detector reaches blobs a quarter pixel across. On Himax test_15 (forward flight into close-ups
-# of a car) it links the approach to the close-ups: frame pairs 37-39 and 38-40 go from no
-# verified match to 15-16 inliers, 38-39 from 36 to 47, and frames 39-40 register (41/81 instead
-# of 39/81); extraction takes ~4x longer, hence a remedy and not the default.
-FINEST_OCTAVE = -2
 
 
 @dataclasses.dataclass
@@ -106,9 +100,11 @@ def reconstruct_with_retries(
     first = Attempt([], reconstruct(images, sfm_dir / "work", opts, plan, progress), 0.0)
     first.seconds = time.perf_counter() - t
     attempts, best = [first], first
-    best_opts, best_plan = opts, plan
+    # the octave SIFT ran at (finer than asked when the frames had few keypoints)
+    octave = first.result.summary.get("first_octave", opts.first_octave)
+    best_opts, best_plan = _set(opts, first_octave=octave), plan
     t_retry = time.perf_counter()
-    for k, (name, change) in enumerate(remedies(opts, plan, known, n), start=1):
+    for k, (name, change) in enumerate(remedies(best_opts, plan, known, n), start=1):
         if best.registered >= opts.retry_below * n:
             break
         if time.perf_counter() - t_retry > opts.retry_budget:

@@ -13,6 +13,8 @@ from dronecap.stage import flatten, setting
 OPTION_HELP = {
     "max_features": "SIFT keypoints kept per frame",
     "first_octave": "-1 upsamples tiny frames before SIFT, 0 does not",
+    "finer_below": "frames with fewer SIFT keypoints than this (median) are extracted again "
+    "one octave finer (0: never)",
     "matcher": "auto | sequential | exhaustive",
     "exhaustive_below": "auto: exhaustive below this many frames",
     "overlap": "sequential: frames matched after each frame",

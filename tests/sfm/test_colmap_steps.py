@@ -75,3 +75,51 @@ def test_initial_pair_on_real_frames_has_angle_and_stays_local(lego_dir, tmp_pat
     a, b = (int(f[:5]) for f in info["chosen"]["frames"])
     assert 3 <= abs(a - b) <= 6
     assert info["chosen"]["tri_angle_deg"] >= 4.0
+
+
+def _frames(folder, textured: bool) -> list[str]:
+    """Three 160x160 gray PNGs: smoothed noise (hundreds of SIFT blobs) or a dozen soft dots."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    (folder / "images").mkdir()
+    names = [f"{i:05d}.png" for i in range(3)]
+    for name in names:
+        if textured:
+            im = cv2.GaussianBlur(rng.random((160, 160)).astype(np.float32), (0, 0), 1.5)
+            im = (im - im.min()) / (im.max() - im.min()) * 255
+        else:
+            im = np.full((160, 160), 90.0, np.float32)
+            for x, y in rng.integers(15, 145, (12, 2)):
+                cv2.circle(im, (int(x), int(y)), 3, 200.0, -1)
+            im = cv2.GaussianBlur(im, (0, 0), 1.0)
+        cv2.imwrite(str(folder / "images" / name), im.astype(np.uint8))
+    return names
+
+
+@pytest.mark.parametrize("textured", [True, False])
+def test_sparse_frames_are_extracted_one_octave_finer(tmp_path, textured):
+    """Textured frames stay at the asked octave; frames with few keypoints are extracted again
+    at -2, and the database then holds the finer keypoints (what matching will see)."""
+    import pycolmap
+
+    from dronecap.sfm.colmap_steps import extract_finer_when_sparse
+
+    names = _frames(tmp_path, textured)
+    opts = SfmOptions(num_threads=1)
+    keypoints, octave = extract_finer_when_sparse(
+        tmp_path / "db.db", tmp_path / "images", names, opts, None
+    )
+    median = sorted(keypoints.values())[1]
+    assert octave == (-1 if textured else -2)
+    assert (median >= opts.finer_below) == textured
+    with pycolmap.Database.open(tmp_path / "db.db") as db:
+        stored = {im.name: db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()}
+    assert stored == keypoints and len(stored) == 3  # one set of images, the finer one
+    if not textured:  # 0 turns the second extraction off
+        never = SfmOptions(num_threads=1, finer_below=0)
+        _, octave = extract_finer_when_sparse(
+            tmp_path / "db0.db", tmp_path / "images", names, never, None
+        )
+        assert octave == -1

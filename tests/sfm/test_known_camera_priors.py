@@ -61,7 +61,9 @@ def test_priors_give_metres_and_gravity_up(prior_run):
     acc = report["accuracy"]
     # aligned to the noise-free metric ground truth, the similarity needs no scale and no tilt
     assert acc["scale"] == pytest.approx(1.0, abs=0.02)
-    assert acc["gravity_deg"] < 1.0
+    # the tilt left is set by the 1 cm prior noise over this short flight: 0.99 deg with SIFT at
+    # octave -1, 1.04 deg at -2 (where the ATE is lower, 0.28 vs 0.32 %); issue 15's floor: 2 deg
+    assert acc["gravity_deg"] < 1.5
     posed = open_dataset(tmp / "posed.h5", kinds=("posed",))
     world_from_scene = np.asarray(posed.attrs["world_from_scene"])
     per_unit = posed.attrs["metres_per_scene_unit"]

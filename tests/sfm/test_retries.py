@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from dronecap.camera import Camera
 from dronecap.cli import main as cli_main
@@ -49,17 +50,21 @@ def test_remedies_that_do_not_apply_are_skipped():
     assert "exhaustive matching" not in [n for n, _ in remedies(seq, fixed, None, 1000)]
 
 
-def test_a_failed_flight_reports_every_attempt(tmp_path):
+@pytest.mark.parametrize("finer_below", [0, 400])
+def test_a_failed_flight_reports_every_attempt(tmp_path, finer_below):
+    """Noise frames never register: every remedy that applies is tried. Pixel noise gives few
+    SIFT blobs at octave -1, so by default the first attempt already extracts at -2 and finer
+    scales are not a remedy; with --finer-below 0 they are."""
     rng = np.random.default_rng(0)
     noise = rng.integers(0, 256, (5, 160, 160, 1), dtype=np.uint8)  # nothing matches
     write_dataset(tmp_path / "frames.h5", Dataset(images=noise, kind="frames"))
-    assert cli_main(["sfm", "--workdir", str(tmp_path), "--quiet", "--threads", "1"]) == 1
+    argv = ["sfm", "--workdir", str(tmp_path), "--quiet", "--threads", "1"]
+    assert cli_main([*argv, "--finer-below", str(finer_below)]) == 1
     report = json.loads((tmp_path / "sfm" / "report.json").read_text())
-    assert [a["remedies"][-1] if a["remedies"] else None for a in report["attempts"]] == [
-        None,
-        "contrast normalisation (CLAHE)",
-        "more features",
-        "finer SIFT scales",
-    ]
-    works = ["work", "work_retry1", "work_retry2", "work_retry3"]
+    tried = [None, "contrast normalisation (CLAHE)", "more features"]
+    if finer_below == 0:
+        tried.append("finer SIFT scales")
+    assert [a["remedies"][-1] if a["remedies"] else None for a in report["attempts"]] == tried
+    assert report["sift_first_octave"] == (-1 if finer_below == 0 else -2)
+    works = ["work", "work_retry1", "work_retry2", "work_retry3"][: len(tried)]
     assert [a["work"] for a in report["attempts"]] == works
