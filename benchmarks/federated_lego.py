@@ -33,6 +33,7 @@ import torch
 
 from dronecap.datasets.blender import import_blender
 from dronecap.datasets.shard import shard_dataset
+from dronecap.federated import engines
 from dronecap.federated import run as fed
 from dronecap.federated.baselines import load_curves, merge_curves, run_baselines
 from dronecap.federated.plot import plot_runs
@@ -123,7 +124,7 @@ def main() -> None:
         run.mkdir(parents=True, exist_ok=True)
         fed.save_settings(run, s)
         if a.only in (None, "federated"):
-            fed.run_simulated(run, fed.SimulationResources(total_cpus=a.cpus))
+            engines.run_simulated(run, engines.SimulationResources(total_cpus=a.cpus))
         if a.only in (None, "baselines") and dtype == "fp16":
             run_baselines(run, s, curve_marks=False, names=a.baseline_names)
         if (run / fed.FINAL).exists() and a.only != "report" and dtype == "fp16":

@@ -1,9 +1,10 @@
-"""Federated Tiny-DroNeRF on Flower: the ClientApp (one per drone), the ServerApp, and the driver.
+"""Federated Tiny-DroNeRF on Flower: the settings, the ClientApp (one per drone), the ServerApp.
 
-The same two apps run under Flower's simulation engine (:func:`run_simulated`, Ray) and in
-deployment mode (``flower-superlink`` + one ``flower-supernode`` per drone, ``flwr run``; see
-docs/federated.md). Everything a process needs is in the run directory, so a ClientApp may run
-in a fresh process for every message and an interrupted run resumes where it stopped:
+The same two apps run under Flower's simulation engine (Ray) and in deployment mode
+(``flower-superlink`` + one ``flower-supernode`` per drone, ``flwr run``; both in
+:mod:`dronecap.federated.engines`, see docs/federated.md). Everything a process needs is in
+the run directory, so a ClientApp may run in a fresh process for every message and an
+interrupted run resumes where it stopped:
 
     RUN/federation.json              settings (shards, config, schedule) -- written by the driver
     RUN/clients/client_K/round_RRR.pt  drone K's trainer after round RRR (weights, grid, Adam)
@@ -34,7 +35,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import re
 import time
 from dataclasses import dataclass, field
@@ -498,107 +498,3 @@ def save_rounds(run_dir: Path, s: FedSettings, history: list[dict], **extra: Any
 # ----------------------------------------------------------------------------------------------
 # Driver
 # ----------------------------------------------------------------------------------------------
-
-
-APP_TOML = """\
-[build-system]
-requires = ["hatchling"]
-build-backend = "hatchling.build"
-
-[project]
-name = "dronecap-federate"
-version = "1.0.0"
-description = "Tiny-DroNeRF FedAvg (the apps live in the installed dronecap package)"
-license = "Apache-2.0"
-dependencies = []
-
-[tool.flwr.app]
-publisher = "dronecap"
-
-[tool.flwr.app.components]
-serverapp = "dronecap.federated.run:serverapp"
-clientapp = "dronecap.federated.run:clientapp"
-
-[tool.flwr.app.config]
-run-dir = ""
-"""
-
-FLWR_CONFIG = """\
-[superlink]
-default = "dronecap"
-
-[superlink.dronecap]
-address = "{address}"
-insecure = true
-"""
-
-
-def write_deployment(run_dir: Path, host: str = "127.0.0.1", port: int = 8000) -> list[str]:
-    """Prepare ``run_dir`` for deployment mode; returns the shell commands that run it.
-
-    Writes the Flower app (``RUN/flwr_app/pyproject.toml``, pointing at this module's
-    ``serverapp``/``clientapp``) and a Flower config naming the SuperLink
-    (``RUN/flwr_home/config.toml``, used through ``FLWR_HOME``). The commands start one
-    SuperLink, one SuperNode per drone (``partition-id`` K, runtime port 9094 + K) and
-    submit the run with ``flwr run``; each long-running one ends with ``&``.
-    """
-    run_dir = Path(run_dir).resolve()
-    s = load_settings(run_dir)
-    app, home = run_dir / "flwr_app", run_dir / "flwr_home"
-    for path, text in (
-        (app / "pyproject.toml", APP_TOML),
-        (home / "config.toml", FLWR_CONFIG.format(address=f"{host}:{port}")),
-    ):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_output(path) as tmp:
-            tmp.write_text(text)
-    cmds = [
-        f"export FLWR_HOME={home}",
-        f"flower-superlink --insecure --disable-runtime-dependency-installation "
-        f"--host {host} --port {port} &",
-    ]
-    cmds += [
-        f"flower-supernode --insecure --superlink {host}:{port} --host {host} "
-        f"--port {9094 + k} --node-config 'partition-id={k} num-partitions={s.n_clients}' &"
-        for k in range(s.n_clients)
-    ]
-    cmds.append(f"flwr run {app} --run-config \"run-dir='{run_dir}'\" --stream")
-    return cmds
-
-
-@dataclass
-class SimulationResources:
-    """Ray's footprint: CPUs per drone and for the whole run (no dashboard)."""
-
-    cpus_per_client: float = 1.0
-    total_cpus: int = 2
-    extra_init_args: dict[str, Any] = field(default_factory=dict)
-
-
-def run_simulated(run_dir: Path, resources: SimulationResources | None = None) -> list[dict]:
-    """Run (or resume) the federation in ``run_dir`` on Flower's simulation engine (Ray).
-
-    ``RUN/federation.json`` must exist (:func:`save_settings`). Returns the rounds recorded.
-    """
-    from flwr.simulation import run_simulation
-
-    res = resources or SimulationResources()
-    s = load_settings(run_dir)
-    # Ray starts its workers (the drones) at nice +15 relative to the driver (lower priority);
-    # next to any other busy process they then got ~10 % of a core. The driver's instead.
-    os.environ.setdefault("RAY_worker_niceness", "0")
-    run_simulation(
-        server_app=make_server_app(Path(run_dir).resolve()),
-        client_app=clientapp,
-        num_supernodes=s.n_clients,
-        backend_config={
-            "client_resources": {"num_cpus": res.cpus_per_client, "num_gpus": 0.0},
-            "init_args": {
-                "num_cpus": res.total_cpus,
-                "include_dashboard": False,
-                "log_to_driver": True,
-                **res.extra_init_args,
-            },
-        },
-    )
-    return load_rounds(run_dir)

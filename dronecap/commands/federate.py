@@ -93,6 +93,7 @@ def run(args: Settings) -> int:
     out.mkdir(parents=True, exist_ok=True)
     shards = _shards(src, out, args)
 
+    from dronecap.federated import engines
     from dronecap.federated import run as fed
 
     same_name = {f.name for f in dataclasses.fields(fed.FedSettings)} & set(vars(args))
@@ -114,7 +115,7 @@ def run(args: Settings) -> int:
         )
     fed.save_settings(out, s)
     if args.deployment:
-        cmds = fed.write_deployment(out, port=args.superlink_port)
+        cmds = engines.write_deployment(out, port=args.superlink_port)
         print("deployment mode: run these (then this command again, for --baselines and the plot):")
         print("\n".join(cmds))
         return 0
@@ -122,7 +123,7 @@ def run(args: Settings) -> int:
     if rounds and rounds[-1]["round"] < s.rounds:
         print(f"resuming after round {rounds[-1]['round']} of {s.rounds}")
     if not rounds or rounds[-1]["round"] < s.rounds:
-        rounds = fed.run_simulated(out)
+        rounds = engines.run_simulated(out)
     if not rounds or rounds[-1]["round"] != s.rounds:
         raise InputError(f"the federation stopped after {len(rounds)} rounds; see the log", out)
     if args.baselines:

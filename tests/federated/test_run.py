@@ -44,8 +44,9 @@ def lego_shards(lego_h5, tmp_path_factory) -> list[str]:
 def test_simulation_two_drones_with_a_failing_client(lego_shards, tmp_path):
     from flwr.app import RecordDict
 
+    from dronecap.federated.engines import run_simulated
     from dronecap.federated.fedavg import pack_update, payload_bytes, to_record
-    from dronecap.federated.run import FedSettings, round_file, run_simulated, save_settings
+    from dronecap.federated.run import FedSettings, round_file, save_settings
     from dronecap.nerf.trainer import Trainer
 
     run = tmp_path / "run"
@@ -180,7 +181,8 @@ def test_cli_interrupted_run_resumes_from_last_round(lego_h5, tmp_path):
 @pytest.mark.data
 def test_deployment_superlink_and_supernodes_on_loopback(lego_shards, tmp_path):
     """The same apps with real SuperLink/SuperNode processes (the commands of --deployment)."""
-    from dronecap.federated.run import FedSettings, load_rounds, save_settings, write_deployment
+    from dronecap.federated.engines import write_deployment
+    from dronecap.federated.run import FedSettings, load_rounds, save_settings
 
     run = tmp_path / "run"
     save_settings(
