@@ -150,6 +150,7 @@ def main() -> None:
     ap.add_argument("--configs", default=",".join(CONFIGS), help="comma-separated presets")
     ap.add_argument("--work", type=Path, default=Path("/tmp/dronecap-scene-sized"))
     ap.add_argument("--snapshot", action="store_true", help="run on the committed HEAD")
+    ap.add_argument("--table-only", action="store_true", help="only the finished runs, no training")
     args = ap.parse_args()
     if args.snapshot:
         rerun_on_snapshot(args.work, Path(__file__))
@@ -161,9 +162,11 @@ def main() -> None:
     for config in configs:  # every scene's default first, the largest row last
         for name in names:
             t0 = time.perf_counter()
+            run = args.work / name / "runs" / f"{config}-{args.steps}"
+            if args.table_only and not (run / "metrics.json").exists():
+                continue
             try:
                 dataset = build_scene(name, args.work)
-                run = args.work / name / "runs" / f"{config}-{args.steps}"
                 rec = train_run(dataset, config, args.steps, run)
             except RuntimeError as err:
                 rec = {"config": config, "error": str(err)[:200]}
