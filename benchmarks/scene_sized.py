@@ -88,6 +88,11 @@ def train_run(dataset: Path, config: str, steps: int, run: Path) -> dict:
     }
 
 
+def ms_text(ms: float | None) -> str:
+    """ms/step for the table ('–': a resumed run that timed no step of its own)."""
+    return "–" if ms is None else f"{ms:.1f}"
+
+
 def table(rows: list[dict], steps: int, load: str) -> str:
     """The results page (markdown)."""
     lines = [
@@ -111,7 +116,7 @@ def table(rows: list[dict], steps: int, load: str) -> str:
             continue
         lines.append(
             f"| {r['scene']} | {r['config']} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['views']} "
-            f"| {r['gap9_mb']:.1f} | {r['train_s']:.0f} | {r['ms_step']:.1f} | {r['model']} |"
+            f"| {r['gap9_mb']:.1f} | {r['train_s']:.0f} | {ms_text(r['ms_step'])} | {r['model']} |"
         )
     return "\n".join(lines) + "\n"
 
