@@ -2,15 +2,46 @@
 
 from __future__ import annotations
 
-import argparse
 import os
+import time
+from pathlib import Path
+
+PROC_STAT = Path("/proc/stat")
+SAMPLE_SECONDS = 0.2  # how long busy_cores watches the CPUs
+
+
+def _cpu_times() -> tuple[float, float] | None:
+    """(idle, total) jiffies of all CPUs since boot from /proc/stat, or None where it is
+    missing (not Linux). Idle counts iowait too."""
+    try:
+        fields = PROC_STAT.read_text().split("\n", 1)[0].split()[1:]
+    except OSError:
+        return None
+    ticks = [float(x) for x in fields]
+    return ticks[3] + ticks[4], sum(ticks)
+
+
+def busy_cores(interval: float = SAMPLE_SECONDS) -> float:
+    """Cores busy now: the non-idle share of CPU time over ``interval`` seconds times the core
+    count. Without /proc/stat, the 1-minute load average (which still counts a job that ended
+    a minute ago: on this 2-core machine, right after a benchmark, it left a run 1 thread)."""
+    cores = os.cpu_count() or 1
+    before = _cpu_times()
+    if before is None:
+        return os.getloadavg()[0]
+    time.sleep(interval)
+    after = _cpu_times()
+    total = after[1] - before[1]
+    if total <= 0:
+        return 0.0
+    return cores * (1.0 - (after[0] - before[0]) / total)
 
 
 def idle_cores() -> int:
-    """The cores not already busy: ``os.cpu_count()`` minus the 1-minute load average,
-    rounded, at least 1."""
+    """The cores not already busy: ``os.cpu_count()`` minus :func:`busy_cores`, rounded, at
+    least 1."""
     cores = os.cpu_count() or 1
-    return max(1, min(cores, round(cores - os.getloadavg()[0])))
+    return max(1, min(cores, round(cores - busy_cores())))
 
 
 def use_torch_threads(requested: int | None) -> int:
@@ -27,13 +58,6 @@ def use_torch_threads(requested: int | None) -> int:
     n = requested if requested else idle_cores()
     torch.set_num_threads(n)
     return n
-
-
-def add_threads_argument(p: argparse.ArgumentParser) -> None:
-    """The ``--threads N`` option of the commands that run torch (train, render, eval)."""
-    p.add_argument(
-        "--threads", type=int, help="torch CPU threads (default: the cores not already busy)"
-    )
 
 
 def check_threads(requested: int | None) -> None:
