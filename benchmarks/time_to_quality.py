@@ -137,14 +137,16 @@ def report(args: argparse.Namespace) -> None:
         f"`.venv/bin/python benchmarks/time_to_quality.py report` (load {load[0]:.1f}).",
         "",
         "| run | scene | preset + overrides | until | steps | PSNR dB | SSIM | train CPU s | "
-        "ms/step | render s/view | GAP9 MB | n_max / march / grid / log2 T | thr | load |",
+        "ms/step | render s/view | GAP9 MB | n_max / march / grid (update every) / log2 T | thr | "
+        "load |",
         "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|",
     ]
     for r in runs:
         b, c = r["budget"], r["config"]
         until = f"{b['time_budget_s']:g} s" if b["time_budget_s"] else "steps"
         until += f", {r['stop_reason']}" if r["stop_reason"] else ""
-        sizes = f"{c['n_max']} / {c['march_steps']} / {c['grid_res']} / {c['log2_hashmap']}"
+        grid = f"{c['grid_res']} (every {c['grid_every']})"
+        sizes = f"{c['n_max']} / {c['march_steps']} / {grid} / {c['log2_hashmap']}"
         lines.append(
             f"| {r['name']} | {r['scene']} | {r['preset']} "
             f"{' '.join(r['overrides'])} | {until} | {r['steps']} | {r['psnr']:.2f} | "
