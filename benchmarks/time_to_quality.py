@@ -37,6 +37,7 @@ def run(args: argparse.Namespace) -> None:
     """Train one configuration and write its JSON (partial while training)."""
     import torch
 
+    from dronecap.gap9.model import memory_bytes
     from dronecap.nerf import budget
     from dronecap.nerf.budget import BudgetConfig
     from dronecap.nerf.config import parse_field, preset
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> None:
     curve_views = test[:: args.curve_every_view]
     bcfg = BudgetConfig(args.time_budget, args.target_psnr, args.plateau_db)
     state = budget.start(bcfg, cfg.steps)
-    tr = Trainer(resolve(cfg, ds, memory_fn=gap9_bytes), ds)  # sized as `dronecap train` does
+    tr = Trainer(resolve(cfg, ds, memory_fn=memory_bytes), ds)  # sized as `dronecap train` does
     curve, ms = [], []
     cpu = 0.0  # process CPU seconds of the optimizer steps: idle-core time of a 1-thread run
     next_eval = args.eval_every
@@ -100,13 +101,6 @@ def run(args: argparse.Namespace) -> None:
         f"views, {cpu:.0f} CPU s, {np.median(ms):.1f} ms/step (wall), "
         f"render {out['render_seconds']:.3f} s/view"
     )
-
-
-def gap9_bytes(cfg) -> float:
-    """Modelled GAP9 memory (bytes, Table II accounting) of a TrainConfig."""
-    from dronecap.gap9.model import cost_report
-
-    return cost_report(cfg)["memory"]["untiled"]["total"]
 
 
 def report(args: argparse.Namespace) -> None:

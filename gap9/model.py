@@ -360,6 +360,13 @@ def deployed(cfg: TrainConfig) -> TrainConfig:
     return cfg.replace(tile_samples=min(cfg.tile_samples, DEPLOY_TILE))
 
 
+def memory_bytes(cfg: TrainConfig) -> float:
+    """Modelled GAP9 memory of ``cfg`` in bytes (Table II accounting, untiled): what a sized
+    configuration's table must fit in (the ``memory_fn`` ``dronecap train`` gives
+    :func:`dronecap.nerf.resolve.resolve`)."""
+    return cost_report(cfg)["memory"]["untiled"]["total"]
+
+
 def cost_report(
     cfg: TrainConfig,
     platform: Platform | None = None,

@@ -111,11 +111,8 @@ def run(s: Settings) -> int:
     dataset = workspace.resolve(s.workdir, s.dataset, workspace.DATASET)
     out = workspace.resolve(s.workdir, s.out, workspace.TRAIN_RUN)
     from dronecap.commands.cost import write_run_cost
-    from dronecap.gap9.model import cost_report
+    from dronecap.gap9.model import memory_bytes
     from dronecap.nerf.run_dir import train_run
-
-    def gap9_bytes(c):  # modelled GAP9 memory (Table II accounting) for the sizing's budget
-        return cost_report(c)["memory"]["untiled"]["total"]
 
     use_torch_threads(s.threads)
     m = train_run(
@@ -128,7 +125,7 @@ def run(s: Settings) -> int:
         backend=s.backend,
         evaluate=not s.no_eval,
         resume_from=s.resume_from,
-        memory_fn=gap9_bytes,
+        memory_fn=memory_bytes,
         until=until,
     )
     write_run_cost(out)
