@@ -99,13 +99,11 @@ PRESETS: dict[str, TrainConfig] = {
     # The default: the paper's MLPs and batch, n_max, marching step, occupancy grid and table
     # size resolved from the dataset within budget_mb (nerf/sizing.py), one tile per step on
     # the CPU (the same gradient as the GAP9's tiles of 1024). lego: see
-    # benchmarks/results/scene_sized.md. The occupancy grid is updated every 64 steps with the
-    # per-step decay of Instant-NGP's 0.95 every 16 (0.95^4): lego 10k steps 30.43 dB vs 30.27
-    # with every 16, 12 % less training CPU time; corridor 3k 25.92 vs 25.80 dB, renders as fast
-    # (benchmarks/results/time_to_quality.md, sized-10k-every*).
-    "scene-sized": _row(8192, 13).replace(
-        sized=True, tile_samples=8192, grid_every=64, grid_decay=0.95**4
-    ),
+    # benchmarks/results/scene_sized.md. The occupancy grid is updated as in Instant-NGP (every
+    # 16 steps, decay 0.95): every 64 with 0.95^4 trained 12 % faster and gained 0.16 dB on lego
+    # at 10k steps but lost 0.5-0.7 dB on the simulated corridor at 3k (2 seeds; see
+    # benchmarks/results/time_to_quality.md, the *-every* runs).
+    "scene-sized": _row(8192, 13).replace(sized=True, tile_samples=8192),
     # A seconds-long configuration for the test suite.
     "test": TrainConfig(
         steps=60,
