@@ -101,7 +101,7 @@ PRESETS: dict[str, TrainConfig] = {
     # the CPU (the same gradient as the GAP9's tiles of 1024). lego: see
     # benchmarks/results/scene_sized.md. The occupancy grid is updated as in Instant-NGP (every
     # 16 steps, decay 0.95): every 64 with 0.95^4 trained 12 % faster and gained 0.16 dB on lego
-    # at 10k steps but lost 0.5-0.7 dB on the simulated corridor at 3k (2 seeds; see
+    # at 10k steps but lost 0.5-0.9 dB on the simulated corridor at 3k (3 seeds; see
     # benchmarks/results/time_to_quality.md, the *-every* runs).
     "scene-sized": _row(8192, 13).replace(sized=True, tile_samples=8192),
     # A seconds-long configuration for the test suite.
