@@ -4,8 +4,9 @@ Step time: everything `Trainer.train_step` does (drawing rays, marching, the occ
 update when due, forward, backward, Adam) for the default ``scene-sized`` model on lego 160 px
 RGB, resolved as ``dronecap train`` resolves it, after --warm steps (1100: past the grid's
 all-cell warm-up and its growing update interval), in windows of --window steps (64: four of
-the default's every-16-steps grid updates each), at 1 and 2 threads. Each variant runs in its own process, and the variants take turns for
---rounds rounds (the machine is shared: the median over rounds of the median over windows):
+the default's every-16-steps grid updates each), at 1 and 2 threads. Each variant runs in
+its own process, and the variants take turns for --rounds rounds (the machine is shared: the
+median over rounds of the median over windows):
 
 - this commit;
 - this commit with the hash-grid kernels built without their AVX2/AVX-512 paths
