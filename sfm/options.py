@@ -54,12 +54,16 @@ class SfmOptions:
     max_reproj_error: float = 1.5  # px: point filtering, track merging/completion, init pair
     abs_pose_max_error: float = 2.0  # px: RANSAC threshold when registering a frame (PnP)
     tri_max_angle_error: float = 1.0  # deg: triangulation; re-triangulation gets twice this
-    init_min_num_inliers: int = 50  # initial pair; COLMAP relaxes this itself if it fails
+    # initial pair: our choice prefers pairs with this many (COLMAP relaxes it when it fails)
+    init_min_num_inliers: int = 50
     abs_pose_min_num_inliers: int = 15  # 2D-3D inliers needed to register a frame
     max_models: int = 10  # COLMAP keeps starting new models up to this many
     init_trials: int = 1  # 2: also map from COLMAP's own initial pair, keep the better model
     init_max_gap: int = 10  # our initial pair: at most this many frames apart (no loop twins)
     init_min_tri_angle: float = 8.0  # deg: median triangulation angle of an initial pair
+    # |z| of an initial pair's unit relative translation above which the mapper refuses it
+    # (COLMAP's default); our pair choice skips such pairs (forward flight down a corridor)
+    init_max_forward_motion: float = 0.95
     extend: bool = True  # resume mapping from the largest model to absorb the others
     seed: int = 0  # random seed of the mapper (deterministic runs)
     num_threads: int = -1  # -1: all cores
@@ -77,6 +81,8 @@ class SfmOptions:
             raise ValueError("retry_below must be in [0, 1] and retry_budget >= 0")
         if self.init_max_gap < 1 or not 0 < self.init_min_tri_angle < 90:
             raise ValueError("init_max_gap must be >= 1 and init_min_tri_angle in (0, 90) deg")
+        if not 0 < self.init_max_forward_motion <= 1:
+            raise ValueError("init_max_forward_motion must be in (0, 1]")
         if self.matcher not in MATCHERS:
             raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
         if self.max_features < 16:

@@ -2,7 +2,8 @@
 
 :func:`reconstruct` writes the frames as zero-padded PNGs (COLMAP's sequential pairing follows
 image *names*), runs :func:`colmap_job` in a child process (:mod:`dronecap.sfm.isolate`) and
-loads the chosen model. The child runs extraction, matching and incremental mapping, picks the
+loads the chosen model. The child runs extraction, matching and incremental mapping (from our
+initial pairs in turn, :func:`map_from_pairs`, then COLMAP's own when ours stay tiny), picks the
 largest of the models COLMAP returns (model 0 is not always the largest) and, when frames are
 still missing, resumes mapping from it with relaxed registration thresholds so that frames of the
 other models can join it; frames whose pose jumps off the flight path
@@ -25,7 +26,7 @@ from dronecap.sfm.colmap_steps import (
     MIN_KEYPOINTS,
     extract_finer_when_sparse,
     incremental_map,
-    initial_pair,
+    initial_pairs,
     match,
 )
 from dronecap.sfm.isolate import run_isolated
@@ -33,6 +34,8 @@ from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.report import pose_jumps
 
 TINY_MODEL = 0.5  # our start registered under this fraction of usable frames: also try COLMAP's
+ALT_MODELS = "models_alt"  # folder of the models COLMAP started from its own initial pair
+PAIR_TRIES = 3  # our initial pairs tried in turn (best first) until one starts a non-tiny model
 
 
 def image_names(n: int) -> list[str]:
@@ -91,17 +94,19 @@ def colmap_job(
         emit(("registered", k))
 
     t = phase("map")
-    pair, out["init_pair"] = initial_pair(db, opts)
-    found = {}
-    if pair is not None:  # start from a pair with parallax (see initial_pair)
-        found = incremental_map(
-            db, images, root / "models", opts, refine_camera, on_register, None, pair
-        )
+    pairs, info = initial_pairs(db, opts)
+    enough = TINY_MODEL * len(usable)
+    found, tried = map_from_pairs(db, images, root, opts, refine_camera, on_register, pairs, enough)
+    out["init_pair"] = {
+        **info,
+        "tried": tried,
+        "chosen": max(tried, key=lambda r: r["model_frames"], default=None),
+    }
     times["map"] = time.perf_counter() - t
     ours = max((v["frames"] for v in found.values()), default=0)
-    if ours < TINY_MODEL * len(usable) or opts.init_trials > 1:  # COLMAP's own start as well
+    if ours < enough or opts.init_trials > 1:  # COLMAP's own start as well
         t = phase("map (colmap start)")
-        alt = incremental_map(db, images, root / "models_alt", opts, refine_camera, on_register)
+        alt = incremental_map(db, images, root / ALT_MODELS, opts, refine_camera, on_register)
         times["map_colmap_start"] = time.perf_counter() - t
         found.update(alt)
     out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
@@ -114,6 +119,7 @@ def colmap_job(
     # most frames first; among equals, the lower reprojection error (the better basin)
     best = max(found, key=lambda k: (found[k]["frames"], -found[k]["reproj"]))
     out["best"] = best
+    out["init_pair"]["kept"] = Path(best).parent.name != ALT_MODELS  # our pair started it
     size = found[best]["frames"]
     if opts.extend and size < len(usable):
         t = phase("extend", size)
@@ -137,6 +143,41 @@ def colmap_job(
         out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
         times["refine_camera"] = time.perf_counter() - t
     return out
+
+
+def map_from_pairs(
+    database: Path,
+    image_dir: Path,
+    work: Path,
+    opts: SfmOptions,
+    refine_camera: bool,
+    on_register: Callable[[int], None],
+    pairs: list[tuple[tuple[int, int], dict[str, Any]]],
+    enough: float,
+) -> tuple[dict[str, dict[str, float]], list[dict[str, Any]]]:
+    """Map from our initial ``pairs`` (:func:`initial_pairs`, best first) in turn, into
+    ``work/models``, ``work/models_pair2``, ..., until one starts a model of at least ``enough``
+    frames; at most :data:`PAIR_TRIES` pairs.
+
+    COLMAP refuses some starts (its own checks on the pair, at its own thresholds) and some grow
+    no further than a few frames; the next pair is then a better start than COLMAP's own search,
+    which favours planar pairs. Returns the models found (folder -> frames, reprojection error)
+    and each tried pair's report record with the frames of its model ("model_frames", 0: none).
+    """
+    found: dict[str, dict[str, float]] = {}
+    tried = []
+    for k, (pair, record) in enumerate(pairs[:PAIR_TRIES]):
+        out = work / ("models" if k == 0 else f"models_pair{k + 1}")
+        models = incremental_map(
+            database, image_dir, out, opts, refine_camera, on_register, None, pair
+        )
+        found.update(models)
+        tried.append(
+            {**record, "model_frames": max((v["frames"] for v in models.values()), default=0)}
+        )
+        if tried[-1]["model_frames"] >= enough:
+            break
+    return found, tried
 
 
 def jump_frames(model: Path, names: list[str]) -> list[int]:

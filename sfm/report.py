@@ -85,6 +85,23 @@ def pose_jumps(centres: np.ndarray, frames: np.ndarray) -> list[int]:
     return [int(f) for f in np.asarray(frames)[1:-1][jump]]
 
 
+def _initial_pair_lines(info: dict[str, Any]) -> list[str]:
+    """Report lines on our initial pair: which one started the model, or why none did."""
+    init = info.get("chosen")
+    if not init:
+        return []
+    tried = len(info.get("tried", [])) - 1
+    line = (
+        f"  initial pair {init['frames'][0]} + {init['frames'][1]}: {init['inliers']} inliers, "
+        f"triangulation angle {init['tri_angle_deg']:.1f} deg"
+    )
+    if tried > 0:
+        line += f" ({tried} other pair(s) of ours tried)"
+    if info.get("kept") is False:
+        line += "; the kept model started from COLMAP's own initial pair instead"
+    return [line]
+
+
 def format_report(report: dict[str, Any]) -> str:
     """Human-readable multi-line summary of a report dict."""
     lines = [
@@ -114,12 +131,7 @@ def format_report(report: dict[str, Any]) -> str:
             f"  camera {cam['model']} ({how}{src}) fx={cam['fx']:.2f} fy={cam['fy']:.2f} "
             f"cx={cam['cx']:.2f} cy={cam['cy']:.2f}{dist}"
         )
-    init = (report.get("init_pair") or {}).get("chosen")
-    if init:
-        lines.append(
-            f"  initial pair {init['frames'][0]} + {init['frames'][1]}: {init['inliers']} inliers, "
-            f"triangulation angle {init['tri_angle_deg']:.1f} deg"
-        )
+    lines.extend(_initial_pair_lines(report.get("init_pair") or {}))
     attempts = report.get("attempts") or []
     if len(attempts) > 1:
         tried = "; ".join(

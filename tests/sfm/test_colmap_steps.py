@@ -38,16 +38,51 @@ def test_non_positive_threshold_is_rejected(field):
         SfmOptions(**{field: 0.0}).validate()
 
 
-def test_initial_pair_needs_triangulation_angle_then_most_inliers():
-    from dronecap.sfm.colmap_steps import choose_initial_pair
+def _ranked(measured, **opts):
+    from dronecap.sfm.colmap_steps import PairCandidate, rank_initial_pairs
 
-    measured = [
-        (400, 1.5, 1, 2),  # most inliers: a near-duplicate view (no triangulation angle)
-        (150, 9.0, 3, 7),  # the winner: enough angle, most inliers among those
-        (90, 20.0, 4, 9),
+    ranked = rank_initial_pairs([PairCandidate(*m) for m in measured], SfmOptions(**opts))
+    return [(c.a, c.b) for c in ranked]
+
+
+def test_initial_pair_needs_triangulation_angle_then_most_inliers():
+    measured = [  # inliers, angle, forward motion, image ids
+        (400, 0.5, 0.5, 1, 2),  # most inliers: a near-duplicate view (no triangulation angle)
+        (150, 9.0, 0.5, 3, 7),  # enough angle, most inliers among those
+        (90, 20.0, 0.5, 4, 9),
+        (120, 5.0, 0.5, 5, 8),  # under the angle: after those that reach it
     ]
-    assert choose_initial_pair(measured, 8.0) == (150, 9.0, 3, 7)
-    assert choose_initial_pair(measured, 25.0) is None  # COLMAP's own choice then
+    assert _ranked(measured) == [(3, 7), (4, 9), (5, 8)]
+    assert _ranked(measured, init_min_tri_angle=25.0) == [(4, 9), (3, 7), (5, 8)]  # widest first
+
+
+def test_weak_and_forward_initial_pairs_are_not_offered():
+    """The general pairs measured on the simulated aideck corridor (seed 3, frames 36/42 ...):
+    the only pairs reaching 8 deg had 18-25 inliers and started bent models (ATE 9.5-12.6 %);
+    the pairs with most inliers fly straight along the view, which COLMAP's mapper refuses.
+    Offered: the pairs with enough inliers that COLMAP accepts, widest angle first."""
+    measured = [
+        (222, 4.9, 0.969, 59, 67),  # forward: refused by the mapper
+        (121, 3.0, 0.924, 16, 25),
+        (117, 5.2, 0.745, 31, 50),
+        (60, 3.4, 0.861, 35, 44),
+        (25, 16.0, 0.412, 36, 42),  # reaches the angle with too few inliers
+        (18, 7.4, 0.028, 27, 36),
+    ]
+    assert _ranked(measured) == [(31, 50), (35, 44), (16, 25)]
+    weak_only = [m for m in measured if m[0] < 50]  # sparse frames: the old rule, among accepted
+    assert _ranked(weak_only) == [(36, 42), (27, 36)]
+    assert _ranked(measured[:1]) == []  # nothing COLMAP accepts: its own search then
+    assert _ranked(measured[:1], init_max_forward_motion=1.0) == [(59, 67)]
+
+
+def test_initial_pair_thresholds_reach_the_mapper():
+    opts = SfmOptions(init_min_num_inliers=40, init_max_forward_motion=0.9)
+    m = mapper_options(opts, refine_camera=False)
+    assert m.mapper.init_min_num_inliers == 40
+    assert m.mapper.init_max_forward_motion == pytest.approx(0.9)
+    with pytest.raises(ValueError, match="init_max_forward_motion"):
+        SfmOptions(init_max_forward_motion=0.0).validate()
 
 
 def test_initial_pair_on_real_frames_has_angle_and_stays_local(lego_dir, tmp_path):
@@ -57,7 +92,7 @@ def test_initial_pair_on_real_frames_has_angle_and_stays_local(lego_dir, tmp_pat
     import pycolmap
 
     from dronecap.sfm.blender_flight import blender_flight
-    from dronecap.sfm.colmap_steps import extract, initial_pair
+    from dronecap.sfm.colmap_steps import extract, initial_pairs
 
     ds, _ = blender_flight(lego_dir, count=12)
     (tmp_path / "images").mkdir()
@@ -70,11 +105,14 @@ def test_initial_pair_on_real_frames_has_angle_and_stays_local(lego_dir, tmp_pat
         tmp_path / "db.db", tmp_path / "images", names, opts, ("PINHOLE", [k.fx, k.fy, k.cx, k.cy])
     )
     pycolmap.match_exhaustive(tmp_path / "db.db", device=pycolmap.Device.cpu)
-    pair, info = initial_pair(tmp_path / "db.db", opts)
-    assert pair is not None and info["measured"] > 0
-    a, b = (int(f[:5]) for f in info["chosen"]["frames"])
+    pairs, info = initial_pairs(tmp_path / "db.db", opts)
+    assert pairs and info["measured"] > 0
+    first = pairs[0][1]
+    a, b = (int(f[:5]) for f in first["frames"])
     assert 3 <= abs(a - b) <= 6
-    assert info["chosen"]["tri_angle_deg"] >= 4.0
+    assert first["tri_angle_deg"] >= 4.0
+    assert first["inliers"] >= opts.init_min_num_inliers
+    assert first["forward_motion"] <= opts.init_max_forward_motion
 
 
 def _frames(folder, textured: bool) -> list[str]:

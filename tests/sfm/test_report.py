@@ -62,3 +62,19 @@ def test_format_report_mentions_the_essentials():
     assert "dropped frames 3-9 (7) at the end" in text
     assert "textureless: 7" in text
     assert "collinear" in text
+
+
+def test_format_report_says_which_start_the_kept_model_has():
+    """The initial pair line names the pair that started our model, how many others were tried,
+    and says so when the kept model came from COLMAP's own initial pair instead."""
+    pair = {"frames": ["00031.png", "00050.png"], "inliers": 117, "tri_angle_deg": 5.2}
+    base = {"status": "ok", "registered": 102, "frames_total": 102, "registration_rate": 1.0}
+    ours = {"chosen": pair, "tried": [{**pair, "model_frames": 102}], "kept": True}
+    text = format_report({**base, "init_pair": ours})
+    assert "initial pair 00031.png + 00050.png: 117 inliers" in text
+    assert "tried" not in text and "COLMAP's own" not in text
+    refused = {**pair, "model_frames": 0}
+    theirs = {"chosen": refused, "tried": [refused, refused], "kept": False}
+    text = format_report({**base, "init_pair": theirs})
+    assert "(1 other pair(s) of ours tried)" in text
+    assert "the kept model started from COLMAP's own initial pair instead" in text
