@@ -109,6 +109,8 @@ class PoseAccuracy:
     ate_percent: float  # 100 * ate_rmse / extent
     rot_median_deg: float  # median camera rotation error after alignment, degrees
     rot_max_deg: float
+    step_rot_median_deg: float  # rotation error between consecutive frames: needs no alignment
+    step_rot_max_deg: float
     scale: float  # similarity scale recovered -> ground truth
     gravity_deg: float  # angle the alignment turns +z by (meaningful when both frames are z-up)
     warning: str = ""  # set when the position errors rival the trajectory's sideways spread
@@ -122,6 +124,20 @@ def rotation_angle_deg(r: np.ndarray) -> np.ndarray:
     """Angle of rotation matrices [N, 3, 3] in degrees, [N]."""
     cos = (np.trace(r, axis1=1, axis2=2) - 1.0) / 2.0
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def step_rotation_errors_deg(est_c2w: np.ndarray, gt_c2w: np.ndarray) -> np.ndarray:
+    """Rotation error of each step between consecutive frames, degrees [N - 1].
+
+    The angle between the recovered and the true relative rotation of frames k and k + 1
+    (camera k's view of camera k + 1): no similarity is involved, so a model whose shape is right
+    scores low here however its global alignment turns out, and a bent model scores high.
+    """
+    est = np.asarray(est_c2w, dtype=np.float64)[:, :3, :3]
+    gt = np.asarray(gt_c2w, dtype=np.float64)[:, :3, :3]
+    rel_est = np.einsum("nji,njk->nik", est[:-1], est[1:])  # R_k^T R_k+1
+    rel_gt = np.einsum("nji,njk->nik", gt[:-1], gt[1:])
+    return rotation_angle_deg(np.einsum("nji,njk->nik", rel_gt, rel_est))
 
 
 def pose_accuracy(
@@ -150,11 +166,14 @@ def pose_accuracy(
     total = len(est) if total_gt is None else total_gt
     centred = gt[:, :3, 3] - gt[:, :3, 3].mean(0)
     side = float(np.linalg.svd(centred, compute_uv=False)[1] / np.sqrt(len(gt)))
+    step = step_rotation_errors_deg(est, gt)
     warning = ""
     if rmse > side / WEAK_ALIGNMENT:
         warning = (
             f"ATE {rmse:.3g} is over 1/{WEAK_ALIGNMENT:g} of the trajectory's sideways spread "
-            f"{side:.3g}: the alignment rotation (and so the rotation errors) is weakly determined"
+            f"{side:.3g}: the alignment rotation (and so the rotation errors) is weakly determined;"
+            f" the consecutive-frame rotation errors, which need no alignment, reach "
+            f"{step.max():.3g} deg (large: the model itself is bent)"
         )
     return PoseAccuracy(
         matched=len(est),
@@ -166,6 +185,8 @@ def pose_accuracy(
         ate_percent=100.0 * rmse / extent if extent > 0 else float("inf"),
         rot_median_deg=float(np.median(rot)),
         rot_max_deg=float(rot.max()),
+        step_rot_median_deg=float(np.median(step)),
+        step_rot_max_deg=float(step.max()),
         scale=sim.scale,
         gravity_deg=float(np.degrees(np.arccos(np.clip(sim.rotation[2, 2], -1.0, 1.0)))),
         warning=warning,

@@ -175,6 +175,10 @@ def format_report(report: dict[str, Any]) -> str:
             f"{acc['extent']:.3f}), rotation error median {acc['rot_median_deg']:.3f} deg, max "
             f"{acc['rot_max_deg']:.3f} deg, registered {100 * acc['registration_rate']:.1f}%"
         )
+        lines.append(
+            f"  consecutive-frame rotation error (no alignment): median "
+            f"{acc['step_rot_median_deg']:.3f} deg, max {acc['step_rot_max_deg']:.3f} deg"
+        )
         if acc.get("warning"):
             lines.append(f"  warning: {acc['warning']}")
     t = report.get("times", {})

@@ -14,6 +14,7 @@ from dronecap.sfm.align import (
     load_ground_truth,
     pose_accuracy,
     rotation_angle_deg,
+    step_rotation_errors_deg,
     umeyama,
 )
 
@@ -113,6 +114,40 @@ def test_pose_accuracy_warns_when_errors_rival_the_sideways_spread():
     noisy[:, :3, 3] += 0.1 * np.random.default_rng(1).normal(size=(n, 3))  # errors ~0.1 m
     acc = pose_accuracy(noisy, gt)
     assert "weakly determined" in acc.warning
+
+
+def test_step_rotation_errors_need_no_alignment():
+    """Every view turned by the same 40 deg world rotation, the centres left (what a wrong
+    alignment rotation does to the views): the aligned rotation errors are 40 deg, the
+    consecutive-frame errors 0 (the model's shape is right)."""
+    gt = poses_at(SQUARE_ISH, np.stack([rot_z(10.0 * k) for k in range(len(SQUARE_ISH))]))
+    turned = gt.copy()
+    turned[:, :3, :3] = rot_x(40.0) @ gt[:, :3, :3]
+    acc = pose_accuracy(turned, gt)
+    assert acc.rot_median_deg == pytest.approx(40.0, abs=1e-6)
+    assert acc.step_rot_max_deg == pytest.approx(0.0, abs=1e-4)
+
+
+def test_a_bent_model_is_told_apart_from_a_weak_alignment():
+    """A corridor-like flight whose second half the model bends by 30 deg (centres and views,
+    as a wrong start gives): the errors rival the sideways spread, and the warning says that
+    the consecutive-frame rotations, which need no alignment, are off by the bend."""
+    n = 20
+    centres = np.column_stack(
+        [np.linspace(0, 10, n), 0.3 * np.sin(np.arange(n)), 0.2 * np.cos(np.arange(n) / 2)]
+    )
+    gt = poses_at(centres)
+    bent = gt.copy()
+    half = n // 2
+    bent[half:, :3, 3] = (centres[half:] - centres[half]) @ rot_z(30.0).T + centres[half]
+    bent[half:, :3, :3] = rot_z(30.0) @ gt[half:, :3, :3]
+    steps = step_rotation_errors_deg(bent, gt)
+    assert steps.shape == (n - 1,)
+    assert steps[half - 1] == pytest.approx(30.0, abs=1e-6)  # the step across the bend
+    assert np.delete(steps, half - 1).max() == pytest.approx(0.0, abs=1e-4)
+    acc = pose_accuracy(bent, gt)
+    assert acc.step_rot_max_deg == pytest.approx(30.0, abs=1e-6)
+    assert "weakly determined" in acc.warning and "reach 30 deg" in acc.warning
 
 
 def test_rotation_angle_deg_by_hand():
