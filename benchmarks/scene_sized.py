@@ -65,12 +65,16 @@ def build_scene(name: str, work: Path) -> Path:
     return dataset
 
 
-def train_run(dataset: Path, config: str, steps: int, run: Path) -> dict:
-    """Train ``config`` on ``dataset`` for ``steps`` (1 thread) into ``run``; its record."""
+def train_run(
+    dataset: Path, config: str, steps: int, run: Path, sets: tuple[str, ...] = ()
+) -> dict:
+    """Train ``config`` (with ``--set`` assignments ``sets``) on ``dataset`` for ``steps``
+    (1 thread) into ``run``; its record."""
     if not (run / "metrics.json").exists():
         run.parent.mkdir(parents=True, exist_ok=True)
         args = ["train", str(dataset), "--preset", config, "--steps", str(steps), "--threads",
                 "1", "--no-progress", "--out", str(run)]  # fmt: skip
+        args += [a for s in sets for a in ("--set", s)]
         dronecap_command(args, run.parent / f"{run.name}.log")
     metrics = json.loads((run / "metrics.json").read_text())
     cost = json.loads((run / "cost.json").read_text())

@@ -9,6 +9,8 @@ its own process, and the variants take turns for --rounds rounds (the machine is
 median over rounds of the median over windows):
 
 - this commit;
+- this commit with the MLPs multiplying in fp32 (``mlp_dtype=fp32``; the default "auto"
+  multiplies in bf16 on a CPU with native bf16 products);
 - this commit with the hash-grid kernels built without their AVX2/AVX-512 paths
   (``DRONECAP_NO_SIMD=1``);
 - earlier code (``--previous COMMIT``, default: the commit before this session's speed work),
@@ -84,7 +86,10 @@ def measure_steps(args: argparse.Namespace) -> None:
 
     torch.set_num_threads(1)
     ds = lego(Path(args.cache))
-    tr = Trainer(as_trained(preset(args.preset), ds), ds, backend=args.backend)
+    cfg = preset(args.preset)
+    if args.mlp_dtype:  # not given to --previous code, which has no such field
+        cfg = cfg.replace(mlp_dtype=args.mlp_dtype)
+    tr = Trainer(as_trained(cfg, ds), ds, backend=args.backend)
     tr.train(args.warm)
     for threads in (1, 2):
         torch.set_num_threads(threads)
@@ -171,6 +176,7 @@ def main() -> None:
     p.add_argument("--measure", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--preset", default="scene-sized", help=argparse.SUPPRESS)
     p.add_argument("--backend", default="auto", help=argparse.SUPPRESS)
+    p.add_argument("--mlp-dtype", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     Path(args.cache).mkdir(parents=True, exist_ok=True)
     if args.measure:
@@ -182,6 +188,7 @@ def main() -> None:
     old = unpack(args.previous, Path(args.cache))
     variants = {
         "this commit": ([], {}),
+        "this commit, fp32 MLP products": (["--mlp-dtype", "fp32"], {}),
         "this commit, kernels without SIMD": ([], {"DRONECAP_NO_SIMD": "1"}),
         f"previous code ({args.previous})": ([], {"PYTHONPATH": str(old / "pkg")}),
         "PyTorch reference path": (["--backend", "torch"], {}),

@@ -1,12 +1,15 @@
-"""How many CPU threads a command's torch work uses."""
+"""The CPU a command runs on: how many threads its torch work uses, what instructions it has."""
 
 from __future__ import annotations
 
 import os
+import platform
 import time
 from pathlib import Path
 
 PROC_STAT = Path("/proc/stat")
+PROC_CPUINFO = Path("/proc/cpuinfo")
+BF16_FLAGS = ("avx512_bf16", "amx_bf16")  # /proc/cpuinfo flags of native bf16 products
 SAMPLE_SECONDS = 0.2  # how long busy_cores watches the CPUs
 
 
@@ -66,3 +69,19 @@ def check_threads(requested: int | None) -> None:
 
     if requested is not None and requested < 1:
         raise InputError(f"--threads takes a positive number of threads, got {requested}")
+
+
+def cpu_flags() -> str:
+    """The instruction-set flags line of /proc/cpuinfo (the machine name where unreadable)."""
+    try:
+        text = PROC_CPUINFO.read_text()
+    except OSError:
+        return platform.machine()
+    return next((line for line in text.splitlines() if line.startswith("flags")), "")
+
+
+def native_bf16() -> bool:
+    """Whether the CPU multiplies bfloat16 natively (AVX512-BF16 or AMX-BF16). Elsewhere bf16
+    products are emulated and slower than fp32."""
+    flags = set(cpu_flags().split())
+    return any(f in flags for f in BF16_FLAGS)

@@ -17,10 +17,10 @@ from __future__ import annotations
 
 import hashlib
 import os
-import platform
 import sys
 from pathlib import Path
 
+from dronecap.cpu import cpu_flags
 from dronecap.errors import InputError
 
 BACKENDS = ("auto", "cpp", "compile", "torch")
@@ -51,15 +51,6 @@ def _say_once(message: str) -> None:
         print(message, file=sys.stderr, flush=True)
 
 
-def _cpu_flags() -> str:
-    """The CPU's instruction-set flags line of /proc/cpuinfo (``""`` when unreadable)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return platform.machine()
-    return next((line for line in text.splitlines() if line.startswith("flags")), "")
-
-
 def _flags(name: str) -> tuple[str, ...]:
     """Extra compiler flags of kernel ``name`` in this process (KERNELS + :data:`NO_SIMD_ENV`)."""
     extra = ("-DDRONECAP_NO_SIMD",) if os.environ.get(NO_SIMD_ENV) == "1" else ()
@@ -77,7 +68,7 @@ def cache_key(name: str) -> str:
     # the install's own paths too: torch writes them (torch headers, the source file) into the
     # build commands, so two checkouts sharing a cache folder would rebuild each other's
     where = (str(Path(torch.__file__).resolve().parent), str((CSRC / source).resolve()))
-    for part in (torch.__version__, sys.version, *where, " ".join(flags), _cpu_flags()):
+    for part in (torch.__version__, sys.version, *where, " ".join(flags), cpu_flags()):
         h.update(part.encode() + b"\0")
     h.update((CSRC / source).read_bytes())
     return h.hexdigest()[:12]

@@ -8,14 +8,18 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .config import TrainConfig
+from .config import TrainConfig, mlp_dtype
 from .hashgrid import HashGrid
 from .sh import sh_dim, sh_encode
 
 DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
 MAX_LOG_DENSITY = 15.0  # exp(15) ~ 3.3e6 per scene unit: opaque at any step size in use
+# bf16 products pad their rows to a multiple of this: oneDNN builds a kernel for every new
+# matrix shape (~0.4 ms each), and the sample count changes at every step
+ROW_QUANTUM = 256
 
 
 def storage_dtype(precision: str) -> torch.dtype:
@@ -56,6 +60,9 @@ class Field(nn.Module):
         channels: colour channels C of the head (1 or 3, or any other count).
         aabb: [2, 3] bounds in scene units; points are normalised to the unit cube over it.
         backend: hash-grid backend ("auto", "cpp", "torch", "compile").
+
+    The MLPs multiply in ``cfg.mlp_dtype`` (:func:`nerf.config.mlp_dtype`); their weights are
+    float32 either way and every output is float32.
     """
 
     def __init__(
@@ -63,6 +70,7 @@ class Field(nn.Module):
     ) -> None:
         super().__init__()
         self.dtype = storage_dtype(cfg.precision)
+        self.product_dtype = DTYPES[mlp_dtype(cfg)]
         self.channels = channels
         self.encoding = HashGrid(
             cfg.levels, cfg.features, cfg.log2_hashmap, cfg.n_min, cfg.n_max, backend, self.dtype
@@ -78,17 +86,32 @@ class Field(nn.Module):
         self.register_buffer("aabb_size", (a[1] - a[0]).clone(), persistent=False)
 
     def _run(self, mlp: nn.Sequential, x: Tensor) -> Tensor:
-        """Apply ``mlp`` rounding every activation to the storage dtype (GAP9 emulation).
+        """Apply ``mlp`` to ``x`` [N, n_in] float32 -> [N, n_out] float32.
 
+        In fp32 products every activation is rounded to the storage dtype (GAP9 emulation).
         The ReLUs work in place (a ReLU of a rounded value needs no rounding), with autograd
         too: a bias-free linear layer's backward needs its input and weight, not its output.
+        In bf16 products (storage fp32 or bf16) the activations are bf16 and the rows are
+        padded with zeros to a multiple of :data:`ROW_QUANTUM` (zero rows stay zero and add
+        nothing to the weight gradients).
         """
+        if self.product_dtype == torch.float32:
+            for layer in mlp:
+                if isinstance(layer, nn.ReLU):
+                    x = torch.relu_(x)
+                else:
+                    x = round_to(layer(x), self.dtype)
+            return x
+        n = x.shape[0]
+        rows = -(-n // ROW_QUANTUM) * ROW_QUANTUM
+        h = x.new_zeros((rows, x.shape[1]), dtype=self.product_dtype)
+        h[:n] = x
         for layer in mlp:
             if isinstance(layer, nn.ReLU):
-                x = torch.relu_(x)
+                h = torch.relu_(h)
             else:
-                x = round_to(layer(x), self.dtype)
-        return x
+                h = F.linear(h, layer.weight.to(self.product_dtype))
+        return h[:n].float()
 
     def geometry(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """Density and geometry features.

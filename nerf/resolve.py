@@ -24,7 +24,7 @@ import numpy as np
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
-from .config import TrainConfig, config_from_dict, problems
+from .config import TrainConfig, config_from_dict, mlp_dtype, problems
 from .sizing import MemoryFn, SceneFacts, size_to_scene
 
 
@@ -114,7 +114,8 @@ class Resolved:
 
     ``config`` holds every value the model is built and costed with: ``n_max`` (auto-sized
     when ``auto_n_max``), ``channels``, ``resolution`` (image width) and ``train_images``
-    from the data. ``reasons`` says why each of those four has its value.
+    from the data, and the MLP product dtype (``mlp_dtype``, "auto" decided for this CPU).
+    ``reasons`` says why each of those has its value.
     """
 
     config: TrainConfig
@@ -191,8 +192,23 @@ def resolve(
         "train_images": f"frames in {split}",
     }
     reasons |= sized
-    config = cfg.replace(n_max=n_max, channels=ds.channels, resolution=w, train_images=n_train)
+    products = mlp_dtype(cfg)
+    reasons["mlp_dtype"] = _why_mlp_dtype(cfg, products)
+    config = cfg.replace(
+        n_max=n_max, channels=ds.channels, resolution=w, train_images=n_train, mlp_dtype=products
+    )
     return Resolved(config, scene, reasons, dataset_sha256)
+
+
+def _why_mlp_dtype(cfg: TrainConfig, products: str) -> str:
+    """Why the MLPs multiply in ``products`` (the resolved ``cfg.mlp_dtype``)."""
+    if cfg.mlp_dtype != "auto":
+        return "set by the configuration"
+    if products == "bf16":
+        return "this CPU multiplies bf16 natively: faster steps at equal PSNR"
+    if cfg.precision == "fp16":
+        return "fp16 storage (precision) is emulated with fp32 products"
+    return "this CPU has no native bf16 products (emulated bf16 is slower than fp32)"
 
 
 def _size(

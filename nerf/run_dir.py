@@ -51,9 +51,9 @@ COMPARE_VIEWS = 4  # test views in the ground truth | render image
 PROGRESS = "progress"
 PREVIEW_SCALE = 0.5  # progress previews at half resolution
 DATASET_KINDS = ("dataset", "shard")
-# fields a resumed run may change: the step target, and what the data decides (a model
-# continued on another dataset keeps the n_max it was built with)
-RESUMABLE_CHANGES = ("steps", "channels", "resolution", "train_images")
+# fields a resumed run may change: the step target, what the data decides (a model continued
+# on another dataset keeps the n_max it was built with) and the MLP products (this CPU's)
+RESUMABLE_CHANGES = ("steps", "channels", "resolution", "train_images", "mlp_dtype")
 
 
 def eval_file(dataset: str | Path) -> str:
@@ -138,6 +138,7 @@ def _resume(
     Raises InputError when it was trained with another configuration, or on another dataset
     (content hash; run.json's path for checkpoints older than the hash) unless ``other_ok``.
     """
+    from .field import DTYPES
     from .trainer import Trainer
 
     trainer = Trainer.load(source, ds, backend=backend)
@@ -171,6 +172,7 @@ def _resume(
         wanted.dataset_sha256,
     )
     trainer.cfg = trainer.resolved.config
+    trainer.field.product_dtype = DTYPES[trainer.cfg.mlp_dtype]
     return trainer
 
 
@@ -242,6 +244,8 @@ def train_run(
     if trainer.cfg.sized:
         for k in ("channels", *SIZED_FIELDS):
             print(f"sized: {k} = {getattr(trainer.cfg, k)}: {trainer.resolved.reasons[k]}")
+    why = trainer.resolved.reasons.get("mlp_dtype", "")
+    print(f"mlp_dtype = {trainer.cfg.mlp_dtype}: {why}")
     until = until or BudgetConfig()
     state = budget.start(until, trainer.cfg.steps, trainer.step, trainer.train_seconds)
     held_out = budget.held_out_views(ds.split, until.check_views)

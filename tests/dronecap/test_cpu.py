@@ -41,3 +41,20 @@ def test_requested_threads_win_and_are_set(monkeypatch):
         assert cpu.use_torch_threads(3) == 3 == torch.get_num_threads()
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize(
+    ("flags", "native"),
+    [("fpu avx2 avx512f avx512_bf16", True), ("fpu amx_bf16 amx_tile", True),
+     ("fpu avx2 avx512f", False), ("", False)],
+)  # fmt: skip
+def test_native_bf16_reads_the_cpu_flags(monkeypatch, tmp_path, flags, native):
+    info = tmp_path / "cpuinfo"
+    info.write_text(f"processor\t: 0\nflags\t\t: {flags}\n")
+    monkeypatch.setattr(cpu, "PROC_CPUINFO", info)
+    assert cpu.native_bf16() is native
+
+
+def test_without_cpuinfo_no_native_bf16(monkeypatch, tmp_path):
+    monkeypatch.setattr(cpu, "PROC_CPUINFO", tmp_path / "missing")
+    assert cpu.native_bf16() is False

@@ -67,3 +67,55 @@ def test_fp16_field_rounds_activations():
         f.encoding.table.normal_(0, 1)
     _, geo = f.geometry(torch.rand(32, 3) * 2 - 1)
     assert torch.equal(geo, geo.half().float())
+
+
+def _twins(n_max: int = 64, **changes) -> tuple[Field, Field]:
+    """Two fields with the same weights, multiplying in fp32 and in bf16."""
+    cfg = preset("test").replace(n_max=n_max, **changes)
+    exact = Field(cfg.replace(mlp_dtype="fp32"), 3, AABB, backend="torch")
+    fast = Field(cfg.replace(mlp_dtype="bf16"), 3, AABB, backend="torch")
+    with torch.no_grad():
+        exact.encoding.table.normal_(0, 0.5)
+    fast.load_state_dict(exact.state_dict())
+    return exact, fast
+
+
+def test_bf16_products_follow_fp32_in_values_and_gradients():
+    exact, fast = _twins()
+    g = torch.Generator().manual_seed(1)
+    pts = torch.rand(1000, 3, generator=g) * 2 - 1  # not a multiple of the row quantum
+    dirs = torch.nn.functional.normalize(torch.randn(1000, 3, generator=g), dim=-1)
+    outs = []
+    for f in (exact, fast):
+        col, sig = f(pts, dirs)
+        assert col.dtype == sig.dtype == torch.float32 and col.shape == (1000, 3)
+        (col.sum() + sig.log().sum()).backward()
+        outs.append((col.detach(), sig.detach().log()))
+    assert fast.product_dtype == torch.bfloat16
+    (c0, s0), (c1, s1) = outs
+    assert (c1 - c0).abs().max() < 0.02 and (s1 - s0).abs().max() < 0.1
+    assert not torch.equal(c0, c1)  # the bf16 path really multiplied in bf16
+    for p0, p1 in zip(exact.parameters(), fast.parameters(), strict=True):
+        assert p1.grad.dtype == torch.float32
+        cos = torch.nn.functional.cosine_similarity(p0.grad.flatten(), p1.grad.flatten(), 0)
+        assert cos > 0.99
+
+
+def test_bf16_rows_do_not_depend_on_the_batch_around_them():
+    # zero padding to the row quantum must not leak into real rows or their gradients
+    _, fast = _twins()
+    pts = torch.rand(300, 3) * 2 - 1
+    alone = fast.density(pts[:7])
+    together = fast.density(pts)[:7]
+    assert torch.equal(alone, together)
+
+
+def test_bf16_products_keep_huge_and_zero_densities_finite():
+    _, fast = _twins()
+    with torch.no_grad():
+        fast.density_mlp[-1].weight.mul_(1e4)  # log-densities far past the clamp
+    sig = fast.density(torch.rand(50, 3) * 2 - 1)
+    assert torch.isfinite(sig).all() and (sig >= 0).all()
+    with torch.no_grad():
+        fast.density_mlp[-1].weight.zero_()
+    assert torch.equal(fast.density(torch.rand(5, 3)), torch.ones(5))  # exp(0)

@@ -49,6 +49,7 @@ def _one_line_error(capsys, command: str) -> str:
         ("--grid-every", "0", "grid_every must be >= 1"),
         ("--grid-res", "0", "grid_res must be in 1..1024"),
         ("--precision", "fp8", "precision must be one of fp32, fp16, bf16"),
+        ("--mlp-dtype", "fp16", "mlp_dtype must be one of auto, fp32, bf16"),
         ("--lr-schedule", "cosine", "lr_schedule must be one of exp, constant"),
         ("--seed", "-1", "seed must be >= 0"),
         ("--threads", "0", "--threads takes a positive number"),

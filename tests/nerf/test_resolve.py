@@ -21,11 +21,33 @@ def test_resolve_fills_in_what_the_data_decides(cube_rgb):
     focal = 24 / (2 * math.tan(0.4))
     assert r.config.n_max == math.ceil(2 / (1.5 / focal)) == 38
     assert (r.config.channels, r.config.resolution, r.config.train_images) == (3, 24, 9)
-    assert set(r.reasons) == {"n_max", "channels", "resolution", "train_images"}
+    assert set(r.reasons) == {"n_max", "channels", "resolution", "train_images", "mlp_dtype"}
     assert "auto_n_max" in r.reasons["n_max"]
     # a fixed n_max stays, and says so
     assert resolve(preset("test"), cube_rgb).config.n_max == 256
     assert Resolved.from_dict(json.loads(json.dumps(r.to_dict()))).to_dict() == r.to_dict()
+
+
+@pytest.mark.parametrize(
+    ("asked", "precision", "native", "products"),
+    [("auto", "fp32", True, "bf16"), ("auto", "fp32", False, "fp32"),
+     ("auto", "fp16", True, "fp32"), ("auto", "bf16", True, "bf16"),
+     ("fp32", "fp32", True, "fp32"), ("bf16", "fp32", False, "bf16")],
+)  # fmt: skip
+def test_mlp_dtype_is_decided_once_for_this_cpu(
+    cube_rgb, monkeypatch, asked, precision, native, products
+):
+    from dronecap.nerf import config
+
+    monkeypatch.setattr(config, "native_bf16", lambda: native)
+    r = resolve(preset("test").replace(mlp_dtype=asked, precision=precision), cube_rgb)
+    assert r.config.mlp_dtype == products
+    assert ("configuration" in r.reasons["mlp_dtype"]) == (asked != "auto")
+
+
+def test_bf16_products_cannot_emulate_fp16_storage(cube_rgb):
+    with pytest.raises(InputError, match="mlp_dtype bf16 cannot emulate fp16"):
+        resolve(preset("test").replace(mlp_dtype="bf16", precision="fp16"), cube_rgb)
 
 
 def test_split_without_train_frames_is_refused(cube_rgb):
