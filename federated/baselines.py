@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from dronecap.datasets.format import Dataset
+from dronecap.errors import InputError
 from dronecap.federated.run import (
     FedSettings,
     load_rounds,
@@ -33,9 +34,18 @@ from dronecap.files import atomic_output
 
 
 def union_train(paths: list[str]) -> Dataset:
-    """The train frames of several shard files as one dataset (frames in shard order)."""
+    """The train frames of several shard files as one dataset (frames in shard order).
+
+    Raises:
+        InputError: a shard with other scene bounds than the first (not cut from one dataset:
+            one model cannot hold both, and drones' models would map points differently).
+    """
     parts = [train_split(p) for p in paths]
     first = parts[0]
+    for path, part in zip(paths[1:], parts[1:], strict=True):
+        same = part.aabb is not None and first.aabb is not None
+        if not same or not np.array_equal(part.aabb, first.aabb):
+            raise InputError(f"has other scene bounds than {Path(paths[0]).name}", path)
 
     def cat(name: str) -> np.ndarray | None:
         if getattr(first, name) is None:

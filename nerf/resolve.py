@@ -24,7 +24,7 @@ import numpy as np
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
-from .config import TrainConfig, config_from_dict, mlp_dtype, problems
+from .config import SIZED_FIELDS, TrainConfig, config_from_dict, mlp_dtype, problems
 from .sizing import MemoryFn, SceneFacts, size_to_scene
 
 
@@ -141,6 +141,15 @@ class Resolved:
             {str(k): str(v) for k, v in d.get("reasons", {}).items()},
             d.get("dataset_sha256"),
         )
+
+
+def choice_lines(resolved: Resolved, sized: bool) -> list[str]:
+    """What was decided for the model and why, a line each (``dronecap train`` and ``federate``
+    print them): with ``sized``, the channels and the sized fields; always the MLP products."""
+    cfg, why = resolved.config, resolved.reasons
+    fields = ("channels", *SIZED_FIELDS) if sized else ()
+    lines = [f"sized: {k} = {getattr(cfg, k)}: {why.get(k, '')}" for k in fields]
+    return lines + [f"mlp_dtype = {cfg.mlp_dtype}: {why.get('mlp_dtype', '')}"]
 
 
 def check_config(cfg: TrainConfig) -> None:

@@ -34,8 +34,8 @@ from dronecap.files import atomic_output, sha256_file
 
 from . import budget
 from .budget import BudgetConfig
-from .config import SIZED_FIELDS, TrainConfig, config_from_dict
-from .resolve import Resolved, resolve
+from .config import TrainConfig, config_from_dict
+from .resolve import Resolved, choice_lines, resolve
 from .sizing import MemoryFn
 
 if TYPE_CHECKING:
@@ -241,11 +241,7 @@ def train_run(
     if resume_from is not None:
         info["resumed_from"] = str(Path(resume_from).resolve())
     write_json(out / RUN_INFO, info)
-    if trainer.cfg.sized:
-        for k in ("channels", *SIZED_FIELDS):
-            print(f"sized: {k} = {getattr(trainer.cfg, k)}: {trainer.resolved.reasons[k]}")
-    why = trainer.resolved.reasons.get("mlp_dtype", "")
-    print(f"mlp_dtype = {trainer.cfg.mlp_dtype}: {why}")
+    print("\n".join(choice_lines(trainer.resolved, trainer.cfg.sized)))
     until = until or BudgetConfig()
     state = budget.start(until, trainer.cfg.steps, trainer.step, trainer.train_seconds)
     held_out = budget.held_out_views(ds.split, until.check_views)

@@ -95,6 +95,12 @@ def run(args: Settings) -> int:
 
     from dronecap.federated import engines
     from dronecap.federated import run as fed
+    from dronecap.federated.sizing import resolve_once
+    from dronecap.nerf.resolve import choice_lines
+
+    resolved = resolve_once(cfg, shards)
+    print("\n".join(choice_lines(resolved, cfg.sized)))
+    cfg = resolved.config
 
     same_name = {f.name for f in dataclasses.fields(fed.FedSettings)} & set(vars(args))
     s = fed.FedSettings(
