@@ -12,6 +12,12 @@ camera ("distortion ignored": pinhole rays).
 
     nice .venv/bin/python benchmarks/robustness.py [--frames 240] [--steps 1500]
         [--cases clean,distortion,...] [--work /tmp/dronecap-robustness]
+        [--train-set FIELD=VALUE ...]
+
+``--train-set`` passes a training setting (``dronecap train --set``) to every case, e.g.
+``learn_exposure=on``; give it its own ``--work`` (finished cases are cached there). Every test
+PSNR also has its exposure-matched twin (per view, the least-squares gain of the render to the
+ground truth applied first: ``psnr_exposure_matched`` of the evaluation).
 
 ``--snapshot`` runs everything on the last commit (``git archive HEAD`` unpacked under the work
 folder), not on the shared work tree where other engineers' edits are in progress. Each case's
@@ -52,12 +58,9 @@ CASES: dict[str, tuple[list[str], str]] = {
 NOISE_FREE = ["--noise", "0,0", "--exposure-drift", "0"]
 
 
-def eval_line(out: str) -> tuple[float, float]:
-    """(PSNR, SSIM) from `dronecap eval`'s printed line."""
-    m = re.search(r"PSNR (-?[\d.]+) dB, SSIM (-?[\d.]+)", out)
-    if not m:
-        raise RuntimeError(f"no PSNR in eval output: {out[-200:]}")
-    return float(m.group(1)), float(m.group(2))
+def scores(test: dict) -> tuple[float, float, float]:
+    """(PSNR, SSIM, exposure-matched PSNR) of an evaluation's "test" record."""
+    return test["psnr"], test["ssim"], test["psnr_exposure_matched"]
 
 
 def reference_frames(work: Path, frames: int) -> np.ndarray:
@@ -110,9 +113,11 @@ def case_dir(work: Path, name: str) -> Path:
     return work / re.sub(r"\W+", "_", name).strip("_")
 
 
-def run_case(name: str, work: Path, frames: int, steps: int, train: bool = True) -> dict:
+def run_case(
+    name: str, work: Path, frames: int, steps: int, train: bool = True, sets: tuple[str, ...] = ()
+) -> dict:
     """Simulate, ingest, sfm, split, train (and evaluate) one case; returns its record
-    (``train`` False: stop after SfM)."""
+    (``train`` False: stop after SfM; ``sets``: ``--set`` assignments for training)."""
     flags, kind = CASES[name]
     d = case_dir(work, name)
     done = d / "result.json"
@@ -157,16 +162,20 @@ def run_case(name: str, work: Path, frames: int, steps: int, train: bool = True)
             raise StopIteration
         sh(["split", "--workdir", str(d)], log)
         train_cmd = ["train", "--threads", "1", "--steps", str(steps), "--no-progress"]
+        train_cmd += [arg for item in sets for arg in ("--set", item)]
         sh([*train_cmd, "--workdir", str(d)], log)
         m = json.loads((d / "runs" / "train" / "metrics.json").read_text())["test"]
-        rec.update(psnr=m["psnr"], ssim=m["ssim"], test_views=m["views"])
+        rec["psnr"], rec["ssim"], rec["psnr_matched"] = scores(m)
+        rec["test_views"] = m["views"]
         if kind in ("photometric", "reference", "all"):
             ref = reference_frames(work, frames)
             if kind != "all":  # the 324x244 lens needs its own noise-free renders: not done
                 with_images(d / "dataset.h5", d / "dataset_ref.h5", ref, gt)
-                out = sh(["eval", str(d / "runs" / "train"), "--dataset", str(d / "dataset_ref.h5"),
-                          "--threads", "1", "--no-progress"], log)  # fmt: skip
-                rec["psnr_ref"], rec["ssim_ref"] = eval_line(out)
+                sh(["eval", str(d / "runs" / "train"), "--dataset", str(d / "dataset_ref.h5"),
+                    "--threads", "1", "--no-progress"], log)  # fmt: skip
+                ref_eval = d / "runs" / "train" / "eval_dataset_ref.json"
+                test = json.loads(ref_eval.read_text())["test"]
+                rec["psnr_ref"], rec["ssim_ref"], rec["psnr_ref_matched"] = scores(test)
         if name == "distortion":
             pinhole_copy(d / "dataset.h5", d / "dataset_pinhole.h5")
             sh([*train_cmd, str(d / "dataset_pinhole.h5"), "--out", str(d / "runs" / "pinhole")],
@@ -206,22 +215,26 @@ def fmt(x: object, spec: str) -> str:
 def table(recs: list[dict], args: argparse.Namespace, load: str) -> str:
     """The results page (markdown)."""
     clean = next((r for r in recs if r["case"] == "clean" and "psnr" in r), None)
+    sets = "".join(f" --train-set {item}" for item in args.train_set)
+    train_sets = "".join(f" --set {item}" for item in args.train_set)
     lines = [
         "# Robustness of the default pipeline to nano-drone camera and link defects",
         "",
         f"Command: `nice .venv/bin/python benchmarks/robustness.py --frames {args.frames} "
-        f"--steps {args.steps}` (corridor, seed 0, default `ingest`, `sfm --gt --threads 1`, "
-        f"`split`, `train --threads 1 --steps {args.steps}`). Code: commit "
+        f"--steps {args.steps}{sets}` (corridor, seed 0, default `ingest`, `sfm --gt --threads 1`, "
+        f"`split`, `train --threads 1 --steps {args.steps}{train_sets}`). Code: commit "
         f"{', '.join(sorted({r.get('commit', '?') for r in recs}))} (per case in the last "
         f"column). Load: {load}.",
         "",
         "Δ PSNR = test PSNR minus the clean flight's (own test views). PSNR vs ref: the same run "
-        "evaluated against noise-free, drift-free renders of the test poses (photometric cases).",
+        "evaluated against noise-free, drift-free renders of the test poses (photometric cases). "
+        "matched: exposure-matched PSNR (each render scaled by its least-squares gain to the "
+        "ground truth first).",
         "",
         "| case | flags | link (truth) | ingest dropped | delivered / kept | registered | ATE "
-        "| rot. median | SfM camera | focal err. | test PSNR / SSIM | Δ PSNR | PSNR / SSIM vs ref "
-        "| note | commit |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| rot. median | SfM camera | focal err. | test PSNR / SSIM | matched | Δ PSNR "
+        "| PSNR / SSIM vs ref | matched vs ref | note | commit |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in recs:
         delta = r["psnr"] - clean["psnr"] if clean and "psnr" in r else None
@@ -239,7 +252,9 @@ def table(recs: list[dict], args: argparse.Namespace, load: str) -> str:
             f"| {camera} "
             f"| {fmt(r.get('focal_err_pct'), '+.2f')} % "
             f"| {fmt(r.get('psnr'), '.2f')} / {fmt(r.get('ssim'), '.3f')} "
-            f"| {fmt(delta, '+.2f')} | {ref} | {note} | {r.get('commit', '?')} |"
+            f"| {fmt(r.get('psnr_matched'), '.2f')} "
+            f"| {fmt(delta, '+.2f')} | {ref} | {fmt(r.get('psnr_ref_matched'), '.2f')} "
+            f"| {note} | {r.get('commit', '?')} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -277,6 +292,13 @@ def main() -> None:
     ap.add_argument("--snapshot", action="store_true", help="run on the committed HEAD")
     ap.add_argument("--sfm-only", default="", help="comma-separated cases run only up to SfM")
     ap.add_argument("--table-only", action="store_true", help="tabulate finished cases only")
+    ap.add_argument(
+        "--train-set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="training setting for every case (dronecap train --set; repeatable)",
+    )
     args = ap.parse_args()
     if args.snapshot:
         args.work.mkdir(parents=True, exist_ok=True)
@@ -294,7 +316,7 @@ def main() -> None:
                 recs.append({**json.loads(done.read_text()), **link_and_ingest(done.parent)})
             continue
         train = name not in args.sfm_only.split(",")
-        rec = run_case(name, args.work, args.frames, args.steps, train)
+        rec = run_case(name, args.work, args.frames, args.steps, train, tuple(args.train_set))
         recs.append({**rec, **link_and_ingest(case_dir(args.work, name))})
         print(json.dumps(recs[-1]), flush=True)
     load = open("/proc/loadavg").read().split()[:3]

@@ -67,6 +67,14 @@ class TrainConfig:
     # and Adam stay fp32) or "auto": bf16 where the CPU multiplies it natively (AVX512-BF16 or
     # AMX), 20-27 % faster steps at equal PSNR (docs/training.md), else fp32. Resolved once.
     mlp_dtype: str = "auto"
+    # --- the camera's photometric model, learned while training (nerf/photometric.py) -------
+    # Per-frame exposure gains and one vignetting falloff multiply the rendered colour before
+    # the loss; renders and evaluation show the scene without them. "on", "off", or "auto": on
+    # unless the dataset has an alpha channel (a synthetic composite: nothing to compensate).
+    # Resolved once (resolve.py).
+    learn_exposure: str = "off"  # a log-gain per training frame and channel, mean fixed at 0
+    learn_vignetting: str = "off"  # 1 + k1 r^2 + k2 r^4 + k3 r^6 about the principal point
+    photometric_lr_ratio: float = 1.0  # lr of the photometric parameters over the model's lr
     # --- data as the paper describes it (resolving against a dataset replaces them by the
     #     dataset's values; the GAP9 cost model uses these when no dataset is given) ------------
     resolution: int = 160  # image side in pixels
@@ -254,6 +262,7 @@ _RULES: dict[str, tuple[Any, str]] = {
     "eps": (lambda x, c: x > 0, "> 0"),
     "weight_decay": (lambda x, c: x >= 0, ">= 0"),
     "lr_final_ratio": (lambda x, c: x > 0, "> 0"),
+    "photometric_lr_ratio": (lambda x, c: x > 0, "> 0"),
     "budget_mb": (lambda x, c: x > 0, "> 0"),
     "resolution": (lambda x, c: x >= 1, ">= 1"),
     "train_images": (lambda x, c: x >= 0, ">= 0"),
@@ -262,6 +271,11 @@ _RULES: dict[str, tuple[Any, str]] = {
 LR_SCHEDULES = ("exp", "constant")
 PRECISIONS = ("fp32", "fp16", "bf16")
 MLP_DTYPES = ("auto", "fp32", "bf16")
+PHOTOMETRIC_MODES = ("auto", "on", "off")  # learn_exposure, learn_vignetting
+PHOTOMETRIC_FIELDS = ("learn_exposure", "learn_vignetting")
+# fields added after configs were first written: the value a config written without them was
+# trained with (the resolved configs in run.json and checkpoints; see resolve.Resolved)
+LEGACY_VALUES: dict[str, Any] = {"learn_exposure": "off", "learn_vignetting": "off"}
 
 
 def problems(cfg: TrainConfig) -> list[str]:
@@ -293,6 +307,10 @@ def problems(cfg: TrainConfig) -> list[str]:
         out.append(f"mlp_dtype must be one of {', '.join(MLP_DTYPES)}, got {cfg.mlp_dtype!r}")
     elif cfg.mlp_dtype == "bf16" and cfg.precision == "fp16":
         out.append("mlp_dtype bf16 cannot emulate fp16 activations (precision fp16): use fp32")
+    for name in PHOTOMETRIC_FIELDS:
+        if getattr(cfg, name) not in PHOTOMETRIC_MODES:
+            modes = ", ".join(PHOTOMETRIC_MODES)
+            out.append(f"{name} must be one of {modes}, got {getattr(cfg, name)!r}")
     return out
 
 

@@ -1,4 +1,5 @@
-"""Test-view metrics: PSNR and SSIM with scikit-image on the stored resolution."""
+"""Test-view metrics: PSNR and SSIM with scikit-image on the stored resolution, and the
+exposure-matched PSNR (a test view's own exposure fitted away, see :func:`exposure_matched`)."""
 
 from __future__ import annotations
 
@@ -27,6 +28,21 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
     psnr = float(peak_signal_noise_ratio(gt, pred, data_range=1.0))
     ssim = float(structural_similarity(gt, pred, data_range=1.0, channel_axis=2))
     return psnr, ssim
+
+
+def exposure_matched(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``pred`` [H, W, C] in [0, 1] times the per-channel gain that fits it to ``gt`` best in
+    least squares (``sum(pred * gt) / sum(pred^2)`` per channel; 1 for an all-black channel),
+    clipped to [0, 1]: the render as a camera of the view's own exposure would record it."""
+    num = np.sum(pred * gt, axis=(0, 1), dtype=np.float64)
+    den = np.sum(pred * pred, axis=(0, 1), dtype=np.float64)
+    gain = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+    return np.clip(pred * gain.astype(np.float32), 0.0, 1.0)
+
+
+def exposure_matched_psnr(pred: np.ndarray, gt: np.ndarray) -> float:
+    """PSNR (dB, data_range 1) of :func:`exposure_matched` ``pred`` against ``gt`` [H, W, C]."""
+    return float(peak_signal_noise_ratio(gt, exposure_matched(pred, gt), data_range=1.0))
 
 
 def test_views(ds: Dataset) -> np.ndarray:
@@ -58,19 +74,25 @@ def evaluate_views(
         keep_images: also return the renders under "images".
 
     Returns:
-        {"psnr": mean, "ssim": mean, "per_view": [{"index", "psnr", "ssim"}], "views": n}.
+        {"psnr": mean, "ssim": mean, "psnr_exposure_matched": mean, "views": n,
+        "per_view": [{"index", "psnr", "ssim", "psnr_exposure_matched"}]}; the exposure-matched
+        PSNR scores each render after the least-squares per-channel gain to its ground truth
+        (:func:`exposure_matched`: a real test view has its own exposure).
     """
     idx = test_views(ds) if views is None else np.asarray(views, np.int64)
     per_view, images = [], []
     for i in progress_bar(idx, desc="evaluate", unit="view", disable=not progress):
         pred = render(ds.poses[i], ds.intrinsics)
-        p, s = image_metrics(pred, ground_truth(ds, int(i), background))
-        per_view.append({"index": int(i), "psnr": p, "ssim": s})
+        gt = ground_truth(ds, int(i), background)
+        p, s = image_metrics(pred, gt)
+        matched = exposure_matched_psnr(pred, gt)
+        per_view.append({"index": int(i), "psnr": p, "ssim": s, "psnr_exposure_matched": matched})
         if keep_images:
             images.append(pred)
     out = {
-        "psnr": float(np.mean([v["psnr"] for v in per_view])) if per_view else float("nan"),
-        "ssim": float(np.mean([v["ssim"] for v in per_view])) if per_view else float("nan"),
+        key: float(np.mean([v[key] for v in per_view])) if per_view else float("nan")
+        for key in ("psnr", "ssim", "psnr_exposure_matched")
+    } | {
         "views": len(per_view),
         "per_view": per_view,
     }

@@ -24,7 +24,15 @@ import numpy as np
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
-from .config import SIZED_FIELDS, TrainConfig, config_from_dict, mlp_dtype, problems
+from .config import (
+    LEGACY_VALUES,
+    PHOTOMETRIC_FIELDS,
+    SIZED_FIELDS,
+    TrainConfig,
+    config_from_dict,
+    mlp_dtype,
+    problems,
+)
 from .sizing import MemoryFn, SceneFacts, size_to_scene
 
 
@@ -114,8 +122,9 @@ class Resolved:
 
     ``config`` holds every value the model is built and costed with: ``n_max`` (auto-sized
     when ``auto_n_max``), ``channels``, ``resolution`` (image width) and ``train_images``
-    from the data, and the MLP product dtype (``mlp_dtype``, "auto" decided for this CPU).
-    ``reasons`` says why each of those has its value.
+    from the data, the MLP product dtype (``mlp_dtype``, "auto" decided for this CPU) and the
+    photometric model (``learn_exposure``, ``learn_vignetting``: "on" or "off", "auto" decided
+    for the dataset). ``reasons`` says why each of those has its value.
     """
 
     config: TrainConfig
@@ -134,9 +143,11 @@ class Resolved:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Resolved:
-        """Inverse of :meth:`to_dict` (ValueError/KeyError/TypeError when malformed)."""
+        """Inverse of :meth:`to_dict` (ValueError/KeyError/TypeError when malformed); fields
+        a config was written without take the value it was trained with
+        (:data:`nerf.config.LEGACY_VALUES`)."""
         return cls(
-            config_from_dict(d["config"]),
+            config_from_dict(LEGACY_VALUES | d["config"]),
             Scene.from_dict(d["scene"]),
             {str(k): str(v) for k, v in d.get("reasons", {}).items()},
             d.get("dataset_sha256"),
@@ -149,7 +160,9 @@ def choice_lines(resolved: Resolved, sized: bool) -> list[str]:
     cfg, why = resolved.config, resolved.reasons
     fields = ("channels", *SIZED_FIELDS) if sized else ()
     lines = [f"sized: {k} = {getattr(cfg, k)}: {why.get(k, '')}" for k in fields]
-    return lines + [f"mlp_dtype = {cfg.mlp_dtype}: {why.get('mlp_dtype', '')}"]
+    return lines + [
+        f"{k} = {getattr(cfg, k)}: {why.get(k, '')}" for k in ("mlp_dtype", *PHOTOMETRIC_FIELDS)
+    ]
 
 
 def check_config(cfg: TrainConfig) -> None:
@@ -203,10 +216,23 @@ def resolve(
     reasons |= sized
     products = mlp_dtype(cfg)
     reasons["mlp_dtype"] = _why_mlp_dtype(cfg, products)
+    alpha = ds.alpha is not None
+    photometric = {k: _photometric(getattr(cfg, k), alpha) for k in PHOTOMETRIC_FIELDS}
+    reasons |= {k: why for k, (_, why) in photometric.items()}
     config = cfg.replace(
         n_max=n_max, channels=ds.channels, resolution=w, train_images=n_train, mlp_dtype=products
-    )
+    ).replace(**{k: mode for k, (mode, _) in photometric.items()})
     return Resolved(config, scene, reasons, dataset_sha256)
+
+
+def _photometric(mode: str, alpha: bool) -> tuple[str, str]:
+    """("on" or "off", why) of a ``learn_exposure``/``learn_vignetting`` value ``mode`` for a
+    dataset with (``alpha``) or without an alpha channel."""
+    if mode != "auto":
+        return mode, "set by the configuration"
+    if alpha:
+        return "off", "the dataset has an alpha channel (a synthetic composite: no camera to model)"
+    return "on", "camera footage (no alpha channel): its exposure and lens shade the frames"
 
 
 def _why_mlp_dtype(cfg: TrainConfig, products: str) -> str:
@@ -242,7 +268,7 @@ def legacy_resolved(config: dict[str, Any], scene: dict[str, Any]) -> Resolved:
     """The :class:`Resolved` of a checkpoint written before configs were resolved (its config
     and scene dicts): ``n_max`` re-derived from the scene exactly as the trainer of the time
     did; resolution and image count stay as the config had them (unknown then)."""
-    cfg = config_from_dict(config)
+    cfg = config_from_dict(LEGACY_VALUES | config)
     sc = Scene.from_dict(scene)
     n_max = auto_n_max(sc.aabb, sc.near, sc.focal) if cfg.auto_n_max else cfg.n_max
     reasons = {"n_max": "re-derived from a checkpoint written before resolved configs"}

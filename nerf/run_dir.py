@@ -6,8 +6,9 @@ A run folder (``dronecap train --out RUN``) holds:
 ``checkpoint.pt``   the trainer's full state, resolved configuration included (resumable)
 ``run.json``        the dataset (path and content hash) and the resolved configuration
                     (:class:`~nerf.resolve.Resolved`: config, scene, reasons)
-``metrics.json``    test PSNR/SSIM per view and mean, train time, ms/step, parameter count,
-                    the resolved config (written by ``train`` only)
+``metrics.json``    test PSNR/SSIM (and exposure-matched PSNR) per view and mean, train time,
+                    ms/step, parameter count, the resolved config, the learned photometric
+                    model (written by ``train`` only)
 ``eval_<stem>.json`` one per dataset ``dronecap eval`` scored the model on
 ``renders/``        test views as PNGs; ``compare.png``: ground truth | render
 ``cost.json``       the GAP9 cost of the resolved config (written by the train command)
@@ -293,6 +294,7 @@ def train_run(
         "ms_per_step_median": float(np.median(ms)) if ms else None,
         "threads": torch.get_num_threads(),
         "parameters": trainer.field.parameter_count(),
+        "photometric": trainer.photometric.summary(),
         "config": dataclasses.asdict(trainer.cfg),
         "reasons": dict(trainer.resolved.reasons),
         "history": history,

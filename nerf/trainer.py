@@ -4,9 +4,11 @@ A step: update the occupancy grid when due, draw rays from ``images_per_step`` r
 images (as many as the running samples-per-ray estimate says fit in B samples), march them
 through the grid, keep whole rays up to B samples, render them tile by tile (tiles of
 ``tile_samples`` samples, gradients accumulated: the sum over tiles of ``loss_tile / R`` is the
-full-batch loss), Huber loss against the pixels composited on a random background (images with
-alpha), one Adam step. Non-finite losses or gradients skip the step; a run of them stops
-training with :class:`TrainingDiverged` before any weight becomes non-finite.
+full-batch loss), the camera's learned exposure and vignetting applied to the rendered colour
+when on (:mod:`nerf.photometric`), Huber loss against the pixels composited on a random
+background (images with alpha), one Adam step. Non-finite losses or gradients skip the step; a
+run of them stops training with :class:`TrainingDiverged` before any weight becomes
+non-finite.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import dataclasses
 import math
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -30,16 +33,34 @@ from .field import Field
 from .losses import huber_sum, psnr_from_mse
 from .march_kernel import march_function
 from .marching import Samples, take_rays
+from .photometric import Photometric, normalized_radius
 from .rays import camera_rays, ray_aabb
 from .render import Volume, render_rays, render_view
 from .resolve import Resolved, resolve, training_frames
 from .volrend import render_packed
 
 MAX_BAD_STEPS = 20  # consecutive non-finite steps before training stops
+PHOTOMETRIC_GROUP = 2  # index of the photometric parameters' Adam group (when it has any)
 
 
 class TrainingDiverged(InputError):
     """Training kept producing non-finite losses; the last good weights were kept."""
+
+
+class RayBatch(NamedTuple):
+    """The rays of one step: where they start and go, what their pixels saw, where they came
+    from (for the camera's photometric model)."""
+
+    origins: torch.Tensor  # [R, 3] scene units
+    dirs: torch.Tensor  # [R, 3] unit directions
+    target: torch.Tensor  # [R, C] pixel colour in [0, 1] (composited on ``bg`` with alpha)
+    bg: torch.Tensor  # [R, C] background the rendered colour is composited on
+    frame: torch.Tensor  # [R] int64 training-frame index
+    radius: torch.Tensor  # [R] pixel distance from the principal point (nerf.photometric)
+
+    def head(self, n: int) -> RayBatch:
+        """The first ``n`` rays."""
+        return RayBatch(*(t[:n] for t in self))
 
 
 class Trainer:
@@ -77,12 +98,22 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
         self.field = Field(cfg, scene.channels, scene.aabb, backend).to(self.device)
+        self.photometric = Photometric(
+            cfg.train_images,
+            scene.channels,
+            exposure=cfg.learn_exposure == "on",
+            vignetting=cfg.learn_vignetting == "on",
+        ).to(self.device)
         table = [self.field.encoding.table]
+        groups = [
+            {"params": table, "weight_decay": 0.0},
+            {"params": self.field.mlp_parameters(), "weight_decay": cfg.weight_decay},
+        ]
+        photometric = list(self.photometric.parameters())
+        if photometric:  # its own group (PHOTOMETRIC_GROUP), no weight decay
+            groups.append({"params": photometric, "weight_decay": 0.0})
         self.optimizer = torch.optim.Adam(
-            [
-                {"params": table, "weight_decay": 0.0},
-                {"params": self.field.mlp_parameters(), "weight_decay": cfg.weight_decay},
-            ],
+            groups,
             lr=cfg.lr,
             betas=tuple(cfg.betas),
             eps=cfg.eps,
@@ -121,10 +152,17 @@ class Trainer:
         )
         self.poses = torch.as_tensor(train.poses[idx], dtype=torch.float32, device=self.device)
         self.camera = train.intrinsics
+        if self.photometric.resize_frames(idx.size):  # other frames: their gains start at 1
+            group = self.optimizer.param_groups[PHOTOMETRIC_GROUP]
+            for p in group["params"]:
+                self.optimizer.state.pop(p, None)
+            group["params"] = list(self.photometric.parameters())
 
     # ----------------------------------------------------------------------------------------
     # training
     def _lr(self, step: int) -> float:
+        """The model's learning rate at ``step`` (the photometric group takes
+        ``photometric_lr_ratio`` times it)."""
         cfg = self.cfg
         if cfg.lr_schedule == "constant":
             return cfg.lr
@@ -132,7 +170,7 @@ class Trainer:
             return cfg.lr * cfg.lr_final_ratio ** min(step / max(cfg.steps, 1), 1.0)
         raise InputError(f"unknown lr_schedule {cfg.lr_schedule!r}: use 'exp' or 'constant'")
 
-    def _draw_rays(self, n_rays: int):
+    def _draw_rays(self, n_rays: int) -> RayBatch:
         """Random pixels of ``images_per_step`` random training images: rays and targets."""
         g, dev = self.generator, self.device
         n_img, h, w, c = self.images.shape
@@ -152,20 +190,20 @@ class Trainer:
             bg = torch.as_tensor(self.scene.background, dtype=torch.float32, device=dev)
             bg = bg.expand(n_rays, c)
             target = rgb
-        return origins, dirs, target, bg
+        return RayBatch(origins, dirs, target, bg, which, normalized_radius(u, v, self.camera))
 
-    def _march_batch(self):
+    def _march_batch(self) -> tuple[RayBatch, Samples]:
         """Rays of one step and their samples, cut to at most B samples (whole rays)."""
         cfg = self.cfg
         n_rays = int(
             np.clip(cfg.batch_samples / max(self.samples_per_ray, 1e-3), 16, cfg.batch_samples)
         )
-        origins, dirs, target, bg = self._draw_rays(n_rays)
-        t_near, t_far, _ = ray_aabb(origins, dirs, self.aabb)
+        rays = self._draw_rays(n_rays)
+        t_near, t_far, _ = ray_aabb(rays.origins, rays.dirs, self.aabb)
         jitter = torch.rand(n_rays, generator=self.generator, device=self.device)
         s = self.march(
-            origins,
-            dirs,
+            rays.origins,
+            rays.dirs,
             t_near,
             t_far,
             self.step_size,
@@ -180,8 +218,8 @@ class Trainer:
         keep = max(keep, 1)
         if keep < n_rays:
             s = take_rays(s, torch.arange(keep, device=self.device))
-            origins, dirs, target, bg = origins[:keep], dirs[:keep], target[:keep], bg[:keep]
-        return origins, dirs, target, bg, s
+            rays = rays.head(keep)
+        return rays, s
 
     def _render_rays(self, origins, dirs, s: Samples, bg):
         """Colour [R, C] of rays through the field (with autograd)."""
@@ -198,14 +236,16 @@ class Trainer:
         )
         return color
 
-    def accumulate_gradients(self, origins, dirs, target, bg, s: Samples) -> float:
+    def accumulate_gradients(self, rays: RayBatch, s: Samples) -> float:
         """Forward/backward of a batch tile by tile, accumulating into ``.grad``.
 
         Tiles are runs of whole rays holding about ``tile_samples`` samples; each tile's
         loss is its Huber sum divided by the batch's ray count and channel count, so the
-        accumulated gradient equals the full-batch one. Returns the batch loss.
+        accumulated gradient equals the full-batch one. The rendered colour passes through
+        the photometric model (exposure, vignetting; the identity when both are off) before
+        the loss. Returns the batch loss.
         """
-        n_rays, c = target.shape
+        n_rays, c = rays.target.shape
         start = torch.cumsum(s.counts, 0) - s.counts
         tile_of_ray = torch.div(start, max(self.cfg.tile_samples, 1), rounding_mode="floor")
         bounds = torch.searchsorted(tile_of_ray, torch.unique(tile_of_ray)).tolist() + [n_rays]
@@ -216,14 +256,19 @@ class Trainer:
             tile = Samples(
                 s.ray_indices[sa:sb] - a, s.t_starts[sa:sb], s.t_ends[sa:sb], s.counts[a:b]
             )
-            color = self._render_rays(origins[a:b], dirs[a:b], tile, bg[a:b])
-            loss = huber_sum(color, target[a:b]) / (n_rays * c)
+            color = self._render_rays(rays.origins[a:b], rays.dirs[a:b], tile, rays.bg[a:b])
+            seen = self.photometric(color, rays.frame[a:b], rays.radius[a:b])
+            loss = huber_sum(seen, rays.target[a:b]) / (n_rays * c)
             loss.backward()
             total += float(loss.detach())
         return total
 
+    def _parameters(self) -> list[torch.nn.Parameter]:
+        """Everything the optimizer trains: the field's and the photometric model's."""
+        return [*self.field.parameters(), *self.photometric.parameters()]
+
     def _grads_finite(self) -> bool:
-        grads = [p.grad for p in self.field.parameters() if p.grad is not None]
+        grads = [p.grad for p in self._parameters() if p.grad is not None]
         return bool(torch.isfinite(torch.stack([g.sum() for g in grads]).sum()))
 
     def train_step(self) -> dict:
@@ -241,11 +286,11 @@ class Trainer:
                 self.generator,
             )
         lr = self._lr(self.step)
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
-        origins, dirs, target, bg, s = self._march_batch()
+        for i, group in enumerate(self.optimizer.param_groups):
+            group["lr"] = lr * (self.cfg.photometric_lr_ratio if i == PHOTOMETRIC_GROUP else 1.0)
+        rays, s = self._march_batch()
         self.optimizer.zero_grad(set_to_none=False)
-        loss = self.accumulate_gradients(origins, dirs, target, bg, s)
+        loss = self.accumulate_gradients(rays, s)
         ok = math.isfinite(loss) and self._grads_finite()
         if ok:
             self.optimizer.step()
@@ -267,7 +312,7 @@ class Trainer:
             "loss": loss,
             "psnr": psnr_from_mse(mse_est) if ok else math.nan,
             "samples": s.n,
-            "rays": int(target.shape[0]),
+            "rays": int(rays.target.shape[0]),
             "ms": ms,
             "lr": lr,
             "skipped": not ok,
@@ -285,7 +330,8 @@ class Trainer:
     # ----------------------------------------------------------------------------------------
     # weights and state
     def model_weights(self) -> dict[str, np.ndarray]:
-        """Hash table and MLP weights (float32 numpy), exactly what FedAvg averages."""
+        """Hash table and MLP weights (float32 numpy), exactly what FedAvg averages: never
+        the photometric model (a drone's own frames' exposures and its lens)."""
         return {
             k: v.detach().cpu().float().numpy().copy() for k, v in self.field.state_dict().items()
         }
@@ -318,9 +364,9 @@ class Trainer:
         self.grid = occupancy.from_numpy(g, self.device)
 
     def save(self, path: str | Path) -> None:
-        """Write a full checkpoint atomically (resolved config and scene, weights, Adam, grid,
-        step, RNG, camera)."""
-        for k, v in self.field.state_dict().items():
+        """Write a full checkpoint atomically (resolved config and scene, weights, photometric
+        model, Adam, grid, step, RNG, camera)."""
+        for k, v in self._state().items():
             if not torch.isfinite(v).all():
                 raise TrainingDiverged(f"refusing to save non-finite weights ({k})", path)
         write_checkpoint(
@@ -328,6 +374,7 @@ class Trainer:
             {
                 "resolved": self.resolved.to_dict(),
                 "field": self.field.state_dict(),
+                "photometric": self.photometric.state_dict(),
                 "optimizer": self.optimizer.state_dict(),
                 "grid": self.grid_state(),
                 "step": self.step,
@@ -357,6 +404,7 @@ class Trainer:
         self._setup(resolved, device, backend)
         try:
             self.field.load_state_dict(ck["field"])
+            self.photometric.load_state_dict(ck.get("photometric", {}))  # none before it existed
         except RuntimeError as err:
             first = str(err).strip().splitlines()[0]
             msg = f"checkpoint weights do not fit its configuration: {first}"
@@ -379,9 +427,15 @@ class Trainer:
             self.set_data(train)
         return self
 
+    def _state(self) -> dict[str, torch.Tensor]:
+        """Every learned tensor by name: the field's and the photometric model's
+        (``photometric.<name>``)."""
+        own = {f"photometric.{k}": v for k, v in self.photometric.state_dict().items()}
+        return self.field.state_dict() | own
+
     def weights_finite(self) -> bool:
-        """True when every weight of the field is finite."""
-        return all(bool(torch.isfinite(v).all()) for v in self.field.state_dict().values())
+        """True when every weight of the field and the photometric model is finite."""
+        return all(bool(torch.isfinite(v).all()) for v in self._state().values())
 
     # ----------------------------------------------------------------------------------------
     # inference (nerf.render does the work)

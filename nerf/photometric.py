@@ -1,0 +1,123 @@
+"""The camera's photometric model learned while training: per-frame exposure and vignetting.
+
+A real nano-drone camera shows the scene's radiance through two effects the field should not
+learn as scene content:
+
+- **exposure**: auto exposure scales every frame by its own gain. Each training frame ``i`` has
+  a learned log-gain per channel ``l[i, c]`` (initially 0); a pixel of frame ``i`` is scaled by
+  ``exp(l[i, c] - mean_j l[j, c])``. Subtracting the mean over frames fixes the gauge (a
+  brighter scene with darker gains renders the same frames): the geometric mean gain is 1, so
+  the scene keeps the average exposure of the training frames.
+- **vignetting**: the lens darkens the image towards its corners, the same way in every frame
+  of one camera: the factor ``1 + k1 r^2 + k2 r^4 + k3 r^6`` (``k`` learned, initially 0), with
+  ``r`` the distance of the pixel centre from the principal point over that of the farthest
+  image corner (0 at the principal point, 1 at the farthest corner).
+
+Both multiply the rendered colour after compositing the background (the camera saw all of it)
+and before the loss, during training only: renders and evaluation use the field alone (the
+scene's radiance at the reference exposure, no vignetting). The parameters are the drone's
+own, never part of the exchanged or costed network.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from dronecap.camera import Camera
+
+MAX_LOG_GAIN = 3.0  # |log-gain| limit per frame (gains within e^-3..e^3 = 0.05..20)
+VIGNETTE_RANGE = (0.05, 2.0)  # the vignetting factor is clamped to this (positive, finite)
+VIGNETTE_TERMS = 3  # k1 r^2 + k2 r^4 + k3 r^6
+
+
+def normalized_radius(u: Tensor, v: Tensor, camera: Camera) -> Tensor:
+    """Distance of pixel centres from the principal point over that of the farthest corner.
+
+    Args:
+        u: [R] pixel columns (integers; the centre of column u is at u + 0.5 px).
+        v: [R] pixel rows.
+        camera: the frames' camera (principal point ``cx``, ``cy`` and size in pixels).
+
+    Returns:
+        float32 [R], 0 at the principal point and 1 at the farthest image corner.
+    """
+    du = u.float() + 0.5 - camera.cx
+    dv = v.float() + 0.5 - camera.cy
+    corner = max(
+        (x - camera.cx) ** 2 + (y - camera.cy) ** 2
+        for x in (0, camera.width)
+        for y in (0, camera.height)
+    )
+    return torch.sqrt((du * du + dv * dv) / max(corner, 1e-12))
+
+
+class Photometric(nn.Module):
+    """Per-frame exposure and one vignetting falloff (see the module docstring).
+
+    Args:
+        n_frames: training frames (rows of the log-gain table).
+        channels: colour channels C.
+        exposure: learn a gain per frame and channel.
+        vignetting: learn the radial falloff.
+
+    Parameters (absent when their part is off): ``log_gain`` [n_frames, C] (natural log of
+    the gain, before centring) and ``vignette`` [3] (k1, k2, k3).
+    """
+
+    def __init__(self, n_frames: int, channels: int, exposure: bool, vignetting: bool) -> None:
+        super().__init__()
+        self.channels = channels
+        self.log_gain = nn.Parameter(torch.zeros(n_frames, channels)) if exposure else None
+        self.vignette = nn.Parameter(torch.zeros(VIGNETTE_TERMS)) if vignetting else None
+
+    def gains(self) -> Tensor:
+        """Gains [n_frames, C] (factor of the linear colour): ``exp`` of the clamped log-gains
+        minus their mean over frames, so their geometric mean is 1 per channel."""
+        log_gain = self.log_gain.clamp(-MAX_LOG_GAIN, MAX_LOG_GAIN)
+        return torch.exp(log_gain - log_gain.mean(0, keepdim=True))
+
+    def falloff(self, radius: Tensor) -> Tensor:
+        """Vignetting factor [R] at normalised radii [R] (:func:`normalized_radius`), clamped
+        to :data:`VIGNETTE_RANGE`."""
+        r2 = radius * radius
+        powers = torch.stack([r2, r2 * r2, r2 * r2 * r2], -1)
+        return (1.0 + powers @ self.vignette).clamp(*VIGNETTE_RANGE)
+
+    def forward(self, color: Tensor, frame: Tensor, radius: Tensor) -> Tensor:
+        """The colour the camera records of rendered colour ``color``.
+
+        Args:
+            color: [R, C] rendered colour in [0, 1] (background composited).
+            frame: [R] int64 training-frame index of each ray.
+            radius: [R] normalised radius of each ray's pixel (:func:`normalized_radius`).
+
+        Returns:
+            [R, C] ``color`` times the frame's gain and the vignetting factor (those that are
+            learned; ``color`` itself when neither is).
+        """
+        if self.log_gain is not None:
+            color = color * self.gains()[frame]
+        if self.vignette is not None:
+            color = color * self.falloff(radius).unsqueeze(-1)
+        return color
+
+    @torch.no_grad()
+    def summary(self) -> dict[str, list | None]:
+        """What was learned, JSON-able: {"gains": [n_frames][C] (applied gains) or None,
+        "vignette": [k1, k2, k3] or None, "corner_falloff": factor at the farthest corner or
+        None}."""
+        learned = self.vignette is not None
+        return {
+            "gains": None if self.log_gain is None else self.gains().tolist(),
+            "vignette": self.vignette.tolist() if learned else None,
+            "corner_falloff": float(self.falloff(torch.ones(1))[0]) if learned else None,
+        }
+
+    def resize_frames(self, n_frames: int) -> bool:
+        """Start over with ``n_frames`` gains of 1 when the table has another number of rows
+        (a model continued on other frames); True when it did."""
+        if self.log_gain is None or self.log_gain.shape[0] == n_frames:
+            return False
+        self.log_gain = nn.Parameter(self.log_gain.new_zeros(n_frames, self.channels))
+        return True
