@@ -24,6 +24,7 @@ default early stop and without it (the exact reference, PSNR between the two), a
 threads; and the half-resolution preview.
 
     .venv/bin/python benchmarks/train_speed.py [--rounds 3] [--trained 10000]
+    .venv/bin/python benchmarks/train_speed.py --only this,fp32 --rounds 6   # steps only
 
 Writes benchmarks/results/train_speed.md (with the load average: measure on an idle machine).
 """
@@ -177,6 +178,12 @@ def main() -> None:
     p.add_argument("--preset", default="scene-sized", help=argparse.SUPPRESS)
     p.add_argument("--backend", default="auto", help=argparse.SUPPRESS)
     p.add_argument("--mlp-dtype", default=None, help=argparse.SUPPRESS)
+    p.add_argument(
+        "--only",
+        default="",
+        help="comma-separated step variants (this, fp32, nosimd, previous, torch, paper): "
+        "more rounds of a few, no renders; writes train_speed_steps.md",
+    )
     args = p.parse_args()
     Path(args.cache).mkdir(parents=True, exist_ok=True)
     if args.measure:
@@ -187,13 +194,17 @@ def main() -> None:
     lego(Path(args.cache))  # imported once, before the variants run
     old = unpack(args.previous, Path(args.cache))
     variants = {
-        "this commit": ([], {}),
-        "this commit, fp32 MLP products": (["--mlp-dtype", "fp32"], {}),
-        "this commit, kernels without SIMD": ([], {"DRONECAP_NO_SIMD": "1"}),
-        f"previous code ({args.previous})": ([], {"PYTHONPATH": str(old / "pkg")}),
-        "PyTorch reference path": (["--backend", "torch"], {}),
-        "paper preset (tiny-dronerf), this commit": (["--preset", "tiny-dronerf"], {}),
+        "this": ("this commit", [], {}),
+        "fp32": ("this commit, fp32 MLP products", ["--mlp-dtype", "fp32"], {}),
+        "nosimd": ("this commit, kernels without SIMD", [], {"DRONECAP_NO_SIMD": "1"}),
+        "previous": (f"previous code ({args.previous})", [], {"PYTHONPATH": str(old / "pkg")}),
+        "torch": ("PyTorch reference path", ["--backend", "torch"], {}),
+        "paper": ("paper preset (tiny-dronerf), this commit", ["--preset", "tiny-dronerf"], {}),
     }
+    only = args.only.split(",") if args.only else list(variants)
+    if unknown := sorted(set(only) - set(variants)):
+        raise SystemExit(f"unknown variants {unknown}; known: {', '.join(variants)}")
+    variants = {variants[k][0]: variants[k][1:] for k in only}
     got: dict[tuple[str, int], list[dict]] = {}
     for r in range(args.rounds):
         for name, (extra, env) in variants.items():
@@ -205,13 +216,16 @@ def main() -> None:
         cpu = float(np.median([x["cpu_ms"] for x in rs]))
         wall = float(np.median([x["wall_ms"] for x in rs]))
         batch = f"{rs[-1]['samples']:.0f} samples, {rs[-1]['per_ray']:.1f}/ray"
+        if len(rs) > 2:  # the spread a median of two hides
+            batch += "; rounds " + " / ".join(f"{x['wall_ms']:.1f}" for x in rs) + " ms"
         rows.append((f"step, {name}, {threads} thread(s)", f"{cpu:.1f}", f"{wall:.1f}", batch))
     rows.sort(key=lambda r: ("2 thread" in r[0], r[0]))
-    rows += render_rows(args, "lego", lego(Path(args.cache)))
-    work = Path(args.cache) / "scenes"
-    from dronecap.datasets.format import open_dataset
+    if not args.only:
+        from dronecap.datasets.format import open_dataset
 
-    rows += render_rows(args, "corridor", open_dataset(build_scene("corridor", work)))
+        rows += render_rows(args, "lego", lego(Path(args.cache)))
+        work = Path(args.cache) / "scenes"
+        rows += render_rows(args, "corridor", open_dataset(build_scene("corridor", work)))
     load = " ".join(f"{x:.1f}" for x in os.getloadavg())
     lines = [
         "# Trainer speed (default scene-sized model)",
@@ -225,7 +239,8 @@ def main() -> None:
         "of a 1-thread row is what it costs on an idle core, wall ms of a 2-thread row is "
         "only meaningful at a load near 0).",
         "",
-        "Command: `.venv/bin/python benchmarks/train_speed.py`",
+        f"Command: `.venv/bin/python benchmarks/train_speed.py --rounds {args.rounds}"
+        + (f" --only {args.only}`" if args.only else "`"),
         "",
         "| measurement | CPU ms | wall ms | batch / note |",
         "|---|---:|---:|---|",
@@ -234,7 +249,7 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
 
-    (RESULTS / "train_speed.md").write_text(text)
+    (RESULTS / ("train_speed_steps.md" if args.only else "train_speed.md")).write_text(text)
 
 
 if __name__ == "__main__":
