@@ -35,7 +35,7 @@ from dronecap.files import atomic_output, sha256_file
 
 from . import budget
 from .budget import BudgetConfig
-from .config import TrainConfig, config_from_dict
+from .config import PHOTOMETRIC_FIELDS, TrainConfig, config_from_dict
 from .resolve import Resolved, choice_lines, resolve
 from .sizing import MemoryFn
 
@@ -132,9 +132,12 @@ def _resume(
     wanted: Resolved,
     other_ok: bool,
     backend: str,
+    auto: tuple[str, ...] = (),
 ) -> Trainer:
     """The trainer of checkpoint ``source`` set to continue to ``wanted`` on ``ds`` (read
-    from ``ds_path``).
+    from ``ds_path``). Fields in ``auto`` (photometric fields the configuration left to
+    "auto") keep the resumed model's value: a model trained before they existed goes on
+    without them.
 
     Raises InputError when it was trained with another configuration, or on another dataset
     (content hash; run.json's path for checkpoints older than the hash) unless ``other_ok``.
@@ -158,6 +161,13 @@ def _resume(
                 source.parent,
             )
         _warn(f"continuing the model of {source} (trained on another dataset) on this one")
+    kept = {k: getattr(old.config, k) for k in auto}
+    wanted = Resolved(
+        wanted.config.replace(**kept),
+        wanted.scene,
+        wanted.reasons | {k: "the resumed model's" for k in kept},
+        wanted.dataset_sha256,
+    )
     changed = _config_changes(old.config, wanted.config)
     if changed:
         raise InputError(
@@ -165,7 +175,7 @@ def _resume(
             "pass --no-resume to start over or choose another --out",
             source,
         )
-    reasons = {**wanted.reasons, "n_max": old.reasons.get("n_max", "the resumed model's")}
+    reasons = wanted.reasons | {"n_max": old.reasons.get("n_max", "the resumed model's")}
     trainer.resolved = Resolved(
         wanted.config.replace(n_max=old.config.n_max),
         old.scene,
@@ -230,12 +240,13 @@ def train_run(
         raise InputError("is a file, expected a run folder", out)
     out.mkdir(parents=True, exist_ok=True)  # a read-only or full target fails before training
     ckpt = out / CHECKPOINT
+    auto = tuple(k for k in PHOTOMETRIC_FIELDS if getattr(cfg, k) == "auto")
     if resume_from is not None:
         source = Path(resume_from)
         source = source / CHECKPOINT if source.is_dir() else source
-        trainer = _resume(source, ds, dataset_path, wanted, True, backend)
+        trainer = _resume(source, ds, dataset_path, wanted, True, backend, auto)
     elif resume and ckpt.exists():
-        trainer = _resume(ckpt, ds, dataset_path, wanted, False, backend)
+        trainer = _resume(ckpt, ds, dataset_path, wanted, False, backend, auto)
     else:
         trainer = Trainer(wanted, ds, backend=backend)
     info = {"dataset": str(dataset_path.resolve())} | trainer.resolved.to_dict()

@@ -185,3 +185,20 @@ def test_exposure_matched_psnr_ignores_a_global_gain():
     dark = gt * np.array([0.5, 0.7, 0.9], np.float32)
     assert exposure_matched_psnr(dark, gt) > 60
     assert np.isfinite(exposure_matched_psnr(np.zeros_like(gt), gt))  # black render: gain 1
+
+
+def test_resuming_with_auto_keeps_the_resumed_models_choice(photographed, tmp_path):
+    """A run trained without the photometric model (e.g. before it existed) resumes under
+    "auto" without it; asking for it explicitly is a configuration change, refused."""
+    from dronecap.datasets.format import write_dataset
+    from dronecap.errors import InputError
+    from dronecap.nerf.run_dir import train_run
+
+    path = write_dataset(tmp_path / "dataset.h5", photographed[0])
+    run = tmp_path / "run"
+    train_run(path, _cfg("off", steps=3), run, progress=False, evaluate=False)
+    m = train_run(path, _cfg("auto", steps=6), run, progress=False, evaluate=False)
+    assert m["steps"] == 6 and m["config"]["learn_exposure"] == "off"
+    assert m["reasons"]["learn_vignetting"] == "the resumed model's"
+    with pytest.raises(InputError, match="different configuration .*learn_exposure"):
+        train_run(path, _cfg("on", steps=9), run, progress=False, evaluate=False)
