@@ -270,3 +270,29 @@ def test_default_server_step_is_plain_fedavg(server_task):
     ref = weighted_mean([{"t": u["t"].astype(np.float16)} for u in updates], [25, 25])["t"]
     np.testing.assert_allclose(from_record(agg)["model/t"], ref, rtol=1e-6)
     assert strategy.server_state() == {}
+
+
+def test_each_drone_keeps_its_own_exposures_through_a_round(make_cube, tmp_path):
+    """Camera footage (no alpha): the photometric model is on, yet no exposure or vignetting
+    parameter travels, and installing the averaged global model leaves each drone's own
+    per-frame gains (different frame counts per drone) untouched."""
+    import torch
+
+    from dronecap.federated.run import install_global
+    from dronecap.nerf.trainer import Trainer
+
+    drones = []
+    for k, n in enumerate((12, 8)):
+        ds = dataclasses.replace(make_cube(n=n, size=16), alpha=None)
+        tr = Trainer(preset("test").replace(learn_exposure="auto", seed=k), ds)
+        tr.train(6)
+        assert tr.cfg.learn_exposure == "on" and tr.photometric.log_gain.abs().sum() > 0
+        drones.append(tr)
+    updates = [pack_update(tr.model_weights(), None) for tr in drones]
+    assert not any("gain" in key or "vignette" in key for key in updates[0])
+    own = [{k: v.clone() for k, v in tr.photometric.state_dict().items()} for tr in drones]
+    mean = weighted_mean(updates, [9.0, 6.0])
+    for tr, mine in zip(drones, own, strict=True):
+        install_global(tr, mean, rebuild=False)
+        for name, value in tr.photometric.state_dict().items():
+            torch.testing.assert_close(value, mine[name], rtol=0, atol=0)
