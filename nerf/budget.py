@@ -124,7 +124,8 @@ def start(cfg: BudgetConfig, steps: int, step: int = 0, seconds: float = 0.0) ->
     planned = max(steps, step + PROBE_STEPS + 1) if cfg.time_budget_s else steps
     state = BudgetState(planned_steps=planned)
     state.next_plan_s = seconds
-    state.next_check = step + check_interval(state)
+    interval = check_interval(state)  # on the same grid of steps as an uninterrupted run
+    state.next_check = (step // interval + 1) * interval
     return state
 
 

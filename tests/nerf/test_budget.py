@@ -73,6 +73,17 @@ def test_checks_every_tenth_of_the_plan_not_after_the_last_step():
     assert due == list(range(100, 1000, 100))
 
 
+@pytest.mark.parametrize("resumed_at", [0, 40, 48, 119])
+def test_a_resumed_run_checks_at_the_steps_of_an_uninterrupted_one(resumed_at):
+    # progress/step_NNNNNN.png names the checked steps: a run killed and resumed from a
+    # checkpoint must write the same files as one that never stopped
+    cfg = BudgetConfig()
+    state = budget.start(cfg, 120, step=resumed_at)
+    due = [s for s in range(resumed_at + 1, 121) if budget.check_due(cfg, state, s)
+           and budget.record_check(cfg, state, s, 0.0, 20.0) is None]  # fmt: skip
+    assert due == [s for s in range(12, 120, 12) if s > resumed_at]
+
+
 @pytest.mark.parametrize(
     "cfg, words",
     [
