@@ -45,6 +45,16 @@ def exposure_matched_psnr(pred: np.ndarray, gt: np.ndarray) -> float:
     return float(peak_signal_noise_ratio(gt, exposure_matched(pred, gt), data_range=1.0))
 
 
+def scores_line(test: dict) -> str:
+    """The one-line summary the commands print of an evaluation result (:func:`evaluate_views`):
+    PSNR, the exposure-matched PSNR when recorded, SSIM and the view count."""
+    matched = test.get("psnr_exposure_matched")
+    psnr = f"test PSNR {test['psnr']:.2f} dB"
+    if matched is not None:
+        psnr += f" (exposure-matched {matched:.2f})"
+    return f"{psnr}, SSIM {test['ssim']:.3f} over {test['views']} views"
+
+
 def test_views(ds: Dataset) -> np.ndarray:
     """Indices of the test split (split 2), else the validation split, else none."""
     if ds.split is None:

@@ -26,12 +26,12 @@ def run(s: Settings) -> int:
     """Evaluate and write the dataset's eval file."""
     from dronecap import workspace
     from dronecap.cpu import check_threads, use_torch_threads
+    from dronecap.nerf.evaluate import scores_line
     from dronecap.nerf.run_dir import eval_run
 
     run_dir = workspace.resolve(s.workdir, s.run_dir, workspace.TRAIN_RUN)
     check_threads(s.threads)
     use_torch_threads(s.threads)
     out, rec = eval_run(run_dir, s.dataset, not s.no_progress)
-    t = rec["test"]
-    print(f"{out}: test PSNR {t['psnr']:.2f} dB, SSIM {t['ssim']:.3f} over {t['views']} views")
+    print(f"{out}: {scores_line(rec['test'])}")
     return 0

@@ -139,7 +139,9 @@ def run(s: Settings) -> int:
     if t is None:
         print(f"{done}, not evaluated (--no-eval)")
     else:
-        print(f"{done}, test PSNR {t['psnr']:.2f} dB, SSIM {t['ssim']:.3f} over {t['views']} views")
+        from dronecap.nerf.evaluate import scores_line
+
+        print(f"{done}, {scores_line(t)}")
     return 0
 
 

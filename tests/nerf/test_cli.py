@@ -27,7 +27,8 @@ def test_train_resume_eval_render(cube_h5, tmp_path, capsys):
     assert _train([str(cube_h5), "--preset", "test", "--hidden", "16", "--out", str(run)]) == 1
     assert "different configuration (hidden)" in capsys.readouterr().err
     assert main(["eval", str(run), "--no-progress"]) == 0
-    assert "test PSNR" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "test PSNR" in out and "(exposure-matched " in out
     assert main(["render", str(run), "--orbit", "3", "--mp4", "--no-progress"]) == 0
     assert sorted(p.name for p in (run / "render").iterdir()) == [
         "orbit_000.png",
