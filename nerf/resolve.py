@@ -156,7 +156,8 @@ class Resolved:
 
 def choice_lines(resolved: Resolved, sized: bool) -> list[str]:
     """What was decided for the model and why, a line each (``dronecap train`` and ``federate``
-    print them): with ``sized``, the channels and the sized fields; always the MLP products."""
+    print them): with ``sized``, the channels and the sized fields; always the MLP products and
+    the photometric model."""
     cfg, why = resolved.config, resolved.reasons
     fields = ("channels", *SIZED_FIELDS) if sized else ()
     lines = [f"sized: {k} = {getattr(cfg, k)}: {why.get(k, '')}" for k in fields]
