@@ -1,8 +1,7 @@
 """Run a benchmark on the committed HEAD, and run dronecap commands from a benchmark.
 
 Long benchmarks run on a snapshot of the last commit (``git archive HEAD`` unpacked under the
-benchmark's work folder), not on the shared work tree where edits are in progress: the stage
-folders are laid out as the ``dronecap.*`` packages (pyproject's package-dir) and the script is
+benchmark's work folder), not on the shared work tree where edits are in progress: the script is
 re-executed with that tree first on ``sys.path``. ``dronecap_command`` then runs the CLI of
 whichever tree the script runs on.
 """
@@ -20,13 +19,12 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = Path(os.environ.get("DRONECAP_RESULTS", REPO / "benchmarks" / "results"))
 # the real data next to the repository (a snapshot lives elsewhere: it inherits this by env)
 DATA = Path(os.environ.get("DRONECAP_DATA", REPO.parent / "shared" / "data"))
-PACKAGES = ("capture", "sfm", "datasets", "nerf", "camera", "simulator", "federated", "gap9")
 CLI = [sys.executable, "-m", "dronecap.cli"]
 
 
 def unpack(commit: str, work: Path) -> Path:
-    """``work/snapshot-<commit>``: ``git archive`` of ``commit`` with the stage folders laid out
-    as the ``dronecap.*`` packages under ``pkg/`` (put that on PYTHONPATH); unpacked once."""
+    """``work/snapshot-<commit>``: ``git archive`` of ``commit`` (put it on PYTHONPATH: the
+    package ``dronecap/`` sits at its root as on disk); unpacked once."""
     git = ["git", "-C", str(REPO)]
     commit = subprocess.run([*git, "rev-parse", "--short", commit], check=True,
                             capture_output=True, text=True).stdout.strip()  # fmt: skip
@@ -37,14 +35,6 @@ def unpack(commit: str, work: Path) -> Path:
     tmp.mkdir(parents=True)
     tar = subprocess.run([*git, "archive", commit], check=True, capture_output=True)
     subprocess.run(["tar", "-x", "-C", str(tmp)], input=tar.stdout, check=True)
-    pkg = tmp / "pkg" / "dronecap"
-    pkg.parent.mkdir()
-    (tmp / "dronecap").rename(pkg)
-    for sub in PACKAGES:
-        if (tmp / sub).exists():
-            (tmp / sub).rename(pkg / sub)
-    (pkg / "pipelines.yaml").unlink(missing_ok=True)
-    (tmp / "pipelines.yaml").rename(pkg / "pipelines.yaml")
     try:
         tmp.rename(root)
     except OSError:  # another benchmark unpacked the same commit meanwhile
@@ -60,7 +50,7 @@ def rerun_on_snapshot(work: Path, script: Path) -> None:
         return
     root = unpack("HEAD", work)
     commit = root.name.removeprefix("snapshot-")
-    env = dict(os.environ, DRONECAP_SNAPSHOT=commit, PYTHONPATH=str(root / "pkg"),
+    env = dict(os.environ, DRONECAP_SNAPSHOT=commit, PYTHONPATH=str(root),
                DRONECAP_RESULTS=str(RESULTS), DRONECAP_DATA=str(DATA))  # fmt: skip
     print(f"running on a snapshot of commit {commit}: {root}", flush=True)
     here = root / "benchmarks" / script.name
