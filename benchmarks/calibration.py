@@ -34,14 +34,14 @@ import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # the test suite's board renderer (tests/camera/conftest.py)
+sys.path.insert(0, str(ROOT))  # the test suite's board renderer (tests/calibration/conftest.py)
 
+from dronecap.calibration.calibrate import calibrate, find_boards  # noqa: E402
+from dronecap.calibration.plot import plot_calibration  # noqa: E402
+from dronecap.calibration.targets import Board  # noqa: E402
+from dronecap.calibration.views import pick_video_views, read_images  # noqa: E402
 from dronecap.camera import Camera  # noqa: E402
-from dronecap.camera.calibrate import calibrate, find_boards  # noqa: E402
-from dronecap.camera.plot import plot_calibration  # noqa: E402
-from dronecap.camera.targets import Board  # noqa: E402
-from dronecap.camera.views import pick_video_views, read_images  # noqa: E402
-from tests.camera.conftest import board_images, board_poses  # noqa: E402
+from tests.calibration.conftest import board_images, board_poses  # noqa: E402
 from tests.capture.conftest import write_video  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "calibration"

@@ -109,6 +109,7 @@ def _flythrough(run_dir: Path, out: Path) -> Path | None:
 def stage_pictures(command: str, stage_dir: Path, params: dict[str, Any], pics: Path) -> list:
     """Make the pictures of one stage under ``pics`` and return their paths (existing ones)."""
     from dronecap import plots
+    from dronecap.sfm.plots import trajectory_plot
 
     made: list[Path | None] = []
     sid = stage_dir.name
@@ -117,9 +118,7 @@ def stage_pictures(command: str, stage_dir: Path, params: dict[str, Any], pics: 
     elif command == "sfm" and (stage_dir / "posed.h5").exists():
         gt = params.get("gt")
         gt = gt if isinstance(gt, str) and Path(gt).exists() else None
-        made.append(
-            plots.trajectory_plot(stage_dir / "posed.h5", pics / f"{sid}_trajectory.png", gt)
-        )
+        made.append(trajectory_plot(stage_dir / "posed.h5", pics / f"{sid}_trajectory.png", gt))
     elif command == "train" and (stage_dir / "metrics.json").exists():
         made.append(plots.training_curve(stage_dir / "metrics.json", pics / f"{sid}_curve.png"))
         dataset = params.get("dataset")

@@ -1,13 +1,13 @@
-"""dronecap.camera: the one camera type (intrinsics + lens distortion), calibration files and
-camera calibration.
+"""dronecap.camera: the one camera type (intrinsics + lens distortion) and its files.
 
 - :class:`Camera` holds fx, fy, cx, cy in pixels of the stored image and a distortion model;
   OpenCV does the projection and undistortion maths (``camera/model.py``).
 - :func:`load_camera` reads every form of known intrinsics (``fx,fy,cx,cy``, the calibration
   JSON, the simulator's flight.json, OpenCV YAML/XML) into a Camera sized to the frames
-  (``camera/files.py``).
-- ``dronecap calibrate``: :mod:`dronecap.camera.targets` (boards), :mod:`.calibrate` (OpenCV
-  calibration, rejections, warnings), :mod:`.views` (images, video view picking), :mod:`.plot`.
+  (``camera/files.py``), which also writes the calibration JSON/YAML.
+
+The calibration stage that finds a Camera from board views is :mod:`dronecap.calibration`; this
+package imports no other stage (every stage uses it).
 """
 
 from dronecap.camera.files import load_camera

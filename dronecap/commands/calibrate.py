@@ -12,9 +12,9 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
-from dronecap.camera.calibrate import MAX_VIEW_ERROR_PX, MODELS
-from dronecap.camera.targets import PATTERNS, SUBPIX_WINDOW
-from dronecap.camera.views import MAX_VIEWS
+from dronecap.calibration.calibrate import MAX_VIEW_ERROR_PX, MODELS
+from dronecap.calibration.targets import PATTERNS, SUBPIX_WINDOW
+from dronecap.calibration.views import MAX_VIEWS
 from dronecap.stage import Settings as Base
 from dronecap.stage import setting
 
@@ -60,9 +60,9 @@ class Settings(Base):
 def run(args: Settings) -> int:
     """Validate every option, find the board, calibrate, write the outputs."""
     from dronecap import workspace
-    from dronecap.camera.calibrate import MIN_VIEWS, calibrate, find_boards
+    from dronecap.calibration.calibrate import MIN_VIEWS, calibrate, find_boards
+    from dronecap.calibration.views import pick_video_views, read_images
     from dronecap.camera.files import write_calibration
-    from dronecap.camera.views import pick_video_views, read_images
     from dronecap.errors import InputError
 
     board = _board(args)
@@ -87,7 +87,7 @@ def run(args: Settings) -> int:
     cal = calibrate(views, size, board, args.model, rejected, args.max_view_error)
     write_calibration(out, cal.record())
     if args.plot:
-        from dronecap.camera.plot import plot_calibration
+        from dronecap.calibration.plot import plot_calibration
 
         plot_calibration(cal, views, args.plot)
     k = cal.camera
@@ -107,7 +107,7 @@ def run(args: Settings) -> int:
 
 def _board(args: Settings):
     """The Board of the options, or InputError naming the bad one."""
-    from dronecap.camera.targets import Board
+    from dronecap.calibration.targets import Board
     from dronecap.errors import InputError
 
     parts = args.board.lower().replace("×", "x").split("x")

@@ -12,7 +12,7 @@ import pytest
 from dronecap import plots
 from dronecap.camera import Camera
 from dronecap.cli import main
-from tests.camera.conftest import board_images, board_poses
+from tests.calibration.conftest import board_images, board_poses
 
 
 @pytest.fixture

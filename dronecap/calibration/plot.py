@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dronecap.camera.calibrate import COVERAGE_GRID, Calibration, View
+from dronecap.calibration.calibrate import COVERAGE_GRID, Calibration, View
 from dronecap.plots import pyplot, save_png
 
 

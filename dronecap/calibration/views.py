@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dronecap.camera.calibrate import View
-from dronecap.camera.targets import Board
+from dronecap.calibration.calibrate import View
+from dronecap.calibration.targets import Board
 from dronecap.errors import InputError
 
 MAX_VIEWS = 30  # default --max-views: plenty for 9 intrinsics, still a quick solve

@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
+from dronecap.calibration.calibrate import calibrate, find_boards
+from dronecap.calibration.targets import Board
 from dronecap.camera import Camera
-from dronecap.camera.calibrate import calibrate, find_boards
-from dronecap.camera.targets import Board
 from dronecap.cli import main
-from tests.camera.conftest import board_images, board_poses
+from tests.calibration.conftest import board_images, board_poses
 from tests.capture.conftest import write_video
 from tests.conftest import SHARED_DATA
 
@@ -196,7 +196,7 @@ def test_aruco_grid_through_a_known_pinhole(tmp_path):
 def test_a_view_with_large_error_is_rejected_and_the_rest_solved_again(lens_images):
     from dataclasses import replace
 
-    from dronecap.camera.calibrate import View
+    from dronecap.calibration.calibrate import View
 
     views, _, size = find_boards(lens_images, AUTO)
     rng = np.random.default_rng(0)

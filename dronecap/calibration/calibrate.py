@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from dronecap.calibration.targets import Board, Detection
 from dronecap.camera.model import Camera
-from dronecap.camera.targets import Board, Detection
 from dronecap.errors import InputError
 
 MODELS = ("pinhole", "fisheye")
