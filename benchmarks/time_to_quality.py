@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> None:
     t_start = time.time()
     tr.field.train()
     while not budget.finished(state, tr.step):
-        tr.cfg = tr.cfg.replace(steps=state.planned_steps)  # the lr decay follows the plan
+        tr.plan(state.planned_steps)  # the lr decay follows the plan
         c0 = time.process_time()
         ms.append(tr.train_step()["ms"])
         dt = time.process_time() - c0

@@ -9,12 +9,22 @@ dronecap cost --search --budget-l3 32MB [--budget-l2 1.5MB] [--budget-l1 128kB]
 
 from __future__ import annotations
 
+import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from dronecap.gap9.platform import parse_bytes
 from dronecap.stage import Settings as Base
 from dronecap.stage import setting
+
+
+def byte_size(text: str) -> int:
+    """A size such as 32MB, 1.5MiB, 128kB or 4096 -> bytes (the reason when it is not one)."""
+    try:
+        return parse_bytes(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 @dataclass(kw_only=True)
@@ -38,21 +48,32 @@ class Settings(Base):
         None, help="write the report here (default: RUN_DIR/cost.json, else WORKDIR/cost.json)"
     )
     spp: float = setting(13.0, help="samples per ray/pixel (default 13)")
-    images: int | None = setting(None, help="training images stored aboard (default: config)")
+    images: int | None = setting(
+        None, minimum=1, help="training images stored aboard (default: config)"
+    )
     table2: bool = setting(False, help="compare the model with the paper's Table II")
     search: bool = setting(False, help="list configurations fitting budgets")
-    budget_l3: str | None = setting(None, help="untiled footprint budget, e.g. 32MB (search)")
-    budget_l2: str | None = setting(None, help="L2 peak budget, e.g. 1.5MB (search)")
-    budget_l1: str | None = setting(None, help="L1 budget incl. stacks, e.g. 128kB (search)")
+    budget_l3: int | None = setting(
+        None, parse=byte_size, help="untiled footprint budget, e.g. 32MB (search)"
+    )
+    budget_l2: int | None = setting(
+        None, parse=byte_size, help="L2 peak budget, e.g. 1.5MB (search)"
+    )
+    budget_l1: int | None = setting(
+        None, parse=byte_size, help="L1 budget incl. stacks, e.g. 128kB (search)"
+    )
     runs: list[str] = setting(factory=list, help="metrics.json files of measured runs")
     plot: str | None = setting(None, help="Pareto PNG (default: WORKDIR/pareto.png)")
-    top: int = setting(25, help="configurations listed by --search")
+    top: int = setting(25, minimum=1, help="configurations listed by --search")
     tolerance_db: float = setting(
-        0.25, help="chosen = smallest footprint within this many dB of the best fitting PSNR"
+        0.25,
+        minimum=0,
+        help="chosen = smallest footprint within this many dB of the best fitting PSNR",
     )
 
 
-def _platform(args: Settings):
+def platform(args: Settings):
+    """The platform of --platform (the shipped GAP9 by default); InputError when unusable."""
     from dronecap.errors import InputError
     from dronecap.gap9.platform import load_platform
 
@@ -96,48 +117,6 @@ def _config(args: Settings):
     return cfg, default_out
 
 
-def _check_options(args: Settings) -> None:
-    """Range-check the numeric options before any work (one line each)."""
-    import math
-
-    from dronecap.errors import InputError
-
-    if not (math.isfinite(args.spp) and args.spp > 0):
-        raise InputError(f"--spp takes a positive number of samples per pixel, got {args.spp}")
-    if args.images is not None and args.images < 1:
-        raise InputError(f"--images takes a positive number of images, got {args.images}")
-    if args.top < 1:
-        raise InputError(f"--top takes a positive count, got {args.top}")
-    if not (math.isfinite(args.tolerance_db) and args.tolerance_db >= 0):
-        raise InputError(f"--tolerance-db takes a number >= 0, got {args.tolerance_db}")
-
-
-def write_run_cost(run_dir: str | Path) -> Path:
-    """``RUN_DIR/cost.json``: the report ``dronecap cost RUN_DIR`` gives with its defaults
-    (the train command calls this: the NeRF core never imports the cost model)."""
-    from dronecap.files import atomic_output
-    from dronecap.gap9.model import cost_report, deployed
-    from dronecap.nerf.run_dir import COST, read_resolved
-
-    rep = cost_report(deployed(read_resolved(run_dir).config))
-    out = Path(run_dir) / COST
-    with atomic_output(out) as tmp:
-        tmp.write_text(json.dumps(rep, indent=1))
-    return out
-
-
-def _bytes(text: str | None, flag: str) -> int | None:
-    from dronecap.errors import InputError
-    from dronecap.gap9.platform import parse_bytes
-
-    if text is None:
-        return None
-    try:
-        return parse_bytes(text)
-    except ValueError as err:
-        raise InputError(f"{flag}: {err}") from err
-
-
 def _report(args: Settings) -> int:
     from dronecap.errors import InputError
     from dronecap.files import atomic_output
@@ -145,7 +124,7 @@ def _report(args: Settings) -> int:
 
     cfg, default_out = _config(args)
     try:
-        rep = cost_report(cfg, _platform(args), samples_per_pixel=args.spp, n_images=args.images)
+        rep = cost_report(cfg, platform(args), samples_per_pixel=args.spp, n_images=args.images)
     except (ValueError, ZeroDivisionError) as err:
         raise InputError(f"impossible configuration: {err}") from err
     print(format_report(rep))
@@ -156,82 +135,16 @@ def _report(args: Settings) -> int:
     return 0
 
 
-def _table2(args: Settings) -> int:
-    from dronecap.gap9.paper import table2
-
-    rows = table2(_platform(args))
-    head = f"{'Mem paper':>9} {'model':>7} {'err':>7}"
-    print(f"{'row':<12} {head}   {head.replace('Mem', 'GOp')}")
-    for r in rows:
-        print(
-            f"{r['name']:<12} {r['mem_paper']:>9.0f} {r['mem_model']:>7.1f} {r['mem_err']:>+7.1%}"
-            f"   {r['gop_paper']:>9.2f} {r['gop_model']:>7.3f} {r['gop_err']:>+7.1%}"
-        )
-    worst_m = max(abs(r["mem_err"]) for r in rows)
-    worst_g = max(abs(r["gop_err"]) for r in rows)
-    print(f"worst |error|: memory {worst_m:.1%}, compute {worst_g:.1%} (MB = 1e6 B, GOp = 1e9 op)")
-    return 0
-
-
-def _search(args: Settings) -> int:
-    from dronecap import workspace
-    from dronecap.errors import InputError
-    from dronecap.gap9.search import (
-        Budget,
-        choose,
-        evaluate,
-        load_runs,
-        paper_points,
-        pareto_plot,
-        search,
-    )
-
-    budget = Budget(
-        l3=_bytes(args.budget_l3, "--budget-l3"),
-        l2=_bytes(args.budget_l2, "--budget-l2"),
-        l1=_bytes(args.budget_l1, "--budget-l1"),
-    )
-    if budget.l3 is None and budget.l2 is None and budget.l1 is None:
-        raise InputError("--search needs at least one of --budget-l3/--budget-l2/--budget-l1")
-    if args.runs:
-        try:
-            points = load_runs(args.runs)
-        except ValueError as err:
-            raise InputError(str(err)) from err
-        title = "measured runs"
-    else:
-        points = paper_points()
-        title = "the paper's Table II PSNRs (published, not measured here)"
-    platform = _platform(args)
-    fits = search(budget, platform)
-    print(f"{len(fits)} configurations fit; the {min(args.top, len(fits))} smallest:")
-    print(f"{'B':>6} {'log2T':>5} {'res':>4} {'grid':>4} {'hid':>4} {'L':>3} "
-          f"{'Mem MB':>7} {'L2 kB':>7} {'GOp':>6} {'train min':>9}")  # fmt: skip
-    for r in fits[: args.top]:
-        print(
-            f"{r['batch_samples']:>6} {r['log2_hashmap']:>5} {r['resolution']:>4} "
-            f"{r['grid_res']:>4} {r['hidden']:>4} {r['levels']:>3} {r['mem_mb']:>7.2f} "
-            f"{r['l2_kb']:>7.0f} {r['gop']:>6.3f} {r['train_min']:>9.1f}"
-        )
-    evaluate(points, budget, platform)
-    chosen = choose(points, args.tolerance_db)
-    out = Path(args.plot) if args.plot else workspace.resolve(args.workdir, None, "pareto.png")
-    budget_mb = None if budget.l3 is None else budget.l3 / 1e6
-    drawn = pareto_plot(points, chosen, out, budget_mb, f"memory vs PSNR: {title}")
-    if chosen is None:
-        print(f"no {'run' if args.runs else 'Table II row'} fits the budget")
-    else:
-        print(f"chosen: {chosen.label} ({chosen.mem_mb:.1f} MB, {chosen.psnr:.2f} dB; {title})")
-    if drawn is not None:
-        print(f"wrote {drawn}")
-    return 0
-
-
 def run(args: Settings) -> int:
     """Print the report (or the Table II comparison, or the search) and write its outputs."""
-    _check_options(args)
-    if args.table2:
-        return _table2(args)
-    if args.search:
-        return _search(args)
+    import math
+
+    from dronecap.errors import InputError
+
+    if not (math.isfinite(args.spp) and args.spp > 0):
+        raise InputError(f"spp must be a positive number of samples per pixel, got {args.spp}")
+    if args.table2 or args.search:
+        from dronecap.commands import cost_search
+
+        return cost_search.table2(args) if args.table2 else cost_search.search(args)
     return _report(args)

@@ -45,18 +45,18 @@ class Settings(TorchSettings, ProgressSettings):
         choices=BACKENDS,
         help="hash-grid/marching implementation (auto: C++ kernels when they build)",
     )
-    checkpoint_every: str = setting("500", help="steps between checkpoints")
-    time_budget: str | None = setting(
+    checkpoint_every: int = setting(500, minimum=1, help="steps between checkpoints")
+    time_budget: float | None = setting(
         None,
         metavar="SECONDS",
         help="train for this many seconds: the step count and lr decay are planned from the "
         "measured step time (default: the configuration's fixed step count)",
-    )
-    target_psnr: str | None = setting(
+    )  # checked by BudgetConfig.problems
+    target_psnr: float | None = setting(
         None, metavar="DB", help="stop once held-out views reach this PSNR"
     )
-    plateau_db: str = setting(
-        "0",
+    plateau_db: float = setting(
+        0.0,
         metavar="DB",
         help="stop when the held-out PSNR gained less than this over the last 4 checks "
         "(default 0: off)",
@@ -95,12 +95,6 @@ def run(s: Settings) -> int:
         raise InputError(str(err).strip("'\"")) from None
     check_config(cfg)
     check_threads(s.threads)
-    try:
-        every = int(s.checkpoint_every)
-    except ValueError:
-        every = 0
-    if every < 1:
-        raise InputError(f"--checkpoint-every takes a positive integer, got {s.checkpoint_every!r}")
     if s.resume_from and s.no_resume:
         raise InputError("give --resume-from or --no-resume, not both")
     until = _until(s)
@@ -110,9 +104,8 @@ def run(s: Settings) -> int:
         cfg = cfg.replace(lr_final_ratio=BUDGET_LR_FINAL_RATIO)  # a short schedule decays less
     dataset = workspace.resolve(s.workdir, s.dataset, workspace.DATASET)
     out = workspace.resolve(s.workdir, s.out, workspace.TRAIN_RUN)
-    from dronecap.commands.cost import write_run_cost
-    from dronecap.gap9.model import memory_bytes
-    from dronecap.nerf.run_dir import train_run
+    from dronecap.gap9.model import cost_report, deployed, memory_bytes
+    from dronecap.nerf.run_dir import COST, read_resolved, train_run, write_json
 
     use_torch_threads(s.threads)
     m = train_run(
@@ -121,14 +114,16 @@ def run(s: Settings) -> int:
         out,
         resume=not s.no_resume,
         progress=not s.no_progress,
-        checkpoint_every=every,
+        checkpoint_every=s.checkpoint_every,
         backend=s.backend,
         evaluate=not s.no_eval,
         resume_from=s.resume_from,
         memory_fn=memory_bytes,
         until=until,
     )
-    write_run_cost(out)
+    # the run's GAP9 cost, priced on the steps trained (run.json: the NeRF core never imports
+    # the cost model); the same report `dronecap cost RUN_DIR` gives with its defaults
+    write_json(out / COST, cost_report(deployed(read_resolved(out).config)))
     done = (
         f"{out}: {m['steps']} steps in {m['train_seconds']:.0f} s "
         f"({m['ms_per_step_median'] or 0:.1f} ms/step)"
@@ -146,22 +141,13 @@ def run(s: Settings) -> int:
 
 
 def _until(s: Settings):
-    """The BudgetConfig of --time-budget/--target-psnr/--plateau-db (InputError when bad)."""
+    """The BudgetConfig of the time_budget/target_psnr/plateau_db settings (InputError naming
+    the setting when one is out of range)."""
     from dronecap.errors import InputError
     from dronecap.nerf.budget import BudgetConfig
 
-    def number(text, option):
-        if text is None:
-            return None
-        try:
-            return float(text)
-        except ValueError:
-            raise InputError(f"{option} takes a number, got {text!r}") from None
-
     until = BudgetConfig(
-        time_budget_s=number(s.time_budget, "--time-budget"),
-        target_psnr=number(s.target_psnr, "--target-psnr"),
-        plateau_db=number(s.plateau_db, "--plateau-db"),
+        time_budget_s=s.time_budget, target_psnr=s.target_psnr, plateau_db=s.plateau_db
     )
     bad = until.problems()
     if bad:

@@ -12,9 +12,9 @@ The implementation modelled (the paper's Deployment section):
 - DMA overlaps computation: a kernel takes max(compute, transfer);
 - the occupancy grid (fp32 EMA + a byte flag per cell) is updated on its own schedule.
 
-Public API: :func:`cost_report`, :func:`format_report`, :func:`federated_payload`,
-:func:`link_time_s`, :class:`Platform`, :func:`load_platform`. All sizes in bytes, times in
-seconds, energies in joules, ops as counted in :mod:`dronecap.gap9.arch`.
+Public API: :func:`cost_report`, :func:`format_report`, :func:`federated_payload` and
+:func:`link_time_s` (from :mod:`.link`), :class:`Platform`, :func:`load_platform`. All sizes in
+bytes, times in seconds, energies in joules, ops as counted in :mod:`dronecap.gap9.arch`.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import dataclasses
 import math
 
 from dronecap.gap9 import arch
+from dronecap.gap9.link import federated_payload, link_report, link_time_s
 from dronecap.gap9.platform import Platform, load_platform
 from dronecap.gap9.report_format import format_report
 from dronecap.nerf.config import TrainConfig
@@ -316,29 +317,6 @@ def latency(cfg: TrainConfig, p: Platform, spp: float) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------
-# federated link
-# ---------------------------------------------------------------------------------------------
-
-
-def federated_payload(cfg: TrainConfig, exchange_grid: bool, bytes_per_value: int = 2) -> int:
-    """Bytes one drone sends (or receives) per round for the model: hash table + MLP weights,
-    plus one value per occupancy cell when the grid is exchanged. Counts T rows per level, as
-    the paper. tiny-dronerf, fp16: 524288 + 18816 = 543104 B; + 2 x 128^3 = 4737408 B."""
-    c = arch.counts(cfg, "paper")
-    values = c.params + (c.grid_cells if exchange_grid else 0)
-    return values * bytes_per_value
-
-
-def link_time_s(n_bytes: int, platform: Platform | None = None) -> float:
-    """Seconds to move ``n_bytes`` over the radio at its rated bit rate (8 bits per byte).
-
-    A FedAvg round over one shared channel moves every upload and download in turn: 4 drones x
-    (up + down) x 0.52 MB -> 2.24 s at 15 Mbit/s.
-    """
-    return n_bytes * 8 / _platform(platform).link_bits_per_s
-
-
-# ---------------------------------------------------------------------------------------------
 # the report
 # ---------------------------------------------------------------------------------------------
 
@@ -403,9 +381,6 @@ def cost_report(
     per = arch.ops_per_sample(cfg)
     lat = latency(cfg, p, spp)
     traffic = l3_traffic(cfg, p, spp)
-    no_grid = federated_payload(cfg, False)
-    with_grid = federated_payload(cfg, True)
-    transfers = 2 * clients
     verdicts = {
         "l1": {"need": l1["bytes"] + p.l1_reserved_bytes, "have": p.l1_bytes},
         "l2": {"need": phases[l2_phase], "have": p.l2_bytes},
@@ -445,14 +420,6 @@ def cost_report(
             "run": lat["train"] * p.power_w,
             "frame": lat["render_frame"] * p.power_w,
         },
-        "link": {
-            "payload_no_grid": no_grid,
-            "payload_grid": with_grid,
-            "clients": clients,
-            "round_bytes_no_grid": transfers * no_grid,
-            "round_bytes_grid": transfers * with_grid,
-            "round_s_no_grid": link_time_s(transfers * no_grid, p),
-            "round_s_grid": link_time_s(transfers * with_grid, p),
-        },
+        "link": link_report(cfg, p, clients),
         "verdicts": verdicts,
     }

@@ -142,7 +142,6 @@ def _resume(
     Raises InputError when it was trained with another configuration, or on another dataset
     (content hash; run.json's path for checkpoints older than the hash) unless ``other_ok``.
     """
-    from .field import DTYPES
     from .trainer import Trainer
 
     trainer = Trainer.load(source, ds, backend=backend)
@@ -176,14 +175,8 @@ def _resume(
             source,
         )
     reasons = wanted.reasons | {"n_max": old.reasons.get("n_max", "the resumed model's")}
-    trainer.resolved = Resolved(
-        wanted.config.replace(n_max=old.config.n_max),
-        old.scene,
-        reasons,
-        wanted.dataset_sha256,
-    )
-    trainer.cfg = trainer.resolved.config
-    trainer.field.product_dtype = DTYPES[trainer.cfg.mlp_dtype]
+    config = wanted.config.replace(n_max=old.config.n_max)
+    trainer.adopt(Resolved(config, old.scene, reasons, wanted.dataset_sha256))
     return trainer
 
 
@@ -206,7 +199,10 @@ def train_run(
     :func:`nerf.resolve.resolve`); ``until`` is when training stops (:mod:`nerf.budget`:
     the config's step count by default, or a time budget, target PSNR, plateau), and the
     held-out checks it makes are the run's PSNR-vs-time curve (``metrics.json`` "curve",
-    half-resolution previews in ``progress/``).
+    half-resolution previews in ``progress/``). When training ends elsewhere than the steps
+    asked, the steps trained become the configuration's (:meth:`Trainer.finish`) before
+    run.json, the checkpoint and metrics.json are written, so all of them (and the cost report
+    read from run.json) give what ran.
 
     Everything is checked before training starts: the configuration's ranges, the dataset
     (train frames; test or val views unless ``evaluate`` is False), a checkpoint in
@@ -221,19 +217,62 @@ def train_run(
         InputError: unreadable dataset, bad configuration, a run folder trained with another
             configuration or dataset, no test views to evaluate, or a diverged training.
     """
-    from dronecap.progress import progress_bar
+    dataset_path, out = Path(dataset_path), Path(out_dir)
+    ds = open_dataset(dataset_path, kinds=DATASET_KINDS)
+    trainer = _start(ds, dataset_path, cfg, out, resume, resume_from, backend, memory_fn, evaluate)
+    info = {"dataset": str(dataset_path.resolve())}
+    if resume_from is not None:
+        info["resumed_from"] = str(Path(resume_from).resolve())
+    write_json(out / RUN_INFO, info | trainer.resolved.to_dict())
+    print("\n".join(choice_lines(trainer.resolved, trainer.cfg.sized)))
+    until = until or BudgetConfig()
+    state, ms, history = _loop(trainer, ds, until, out, progress, checkpoint_every)
+    spent = "the time budget was spent" if until.time_budget_s else "the resumed model's"
+    trainer.finish(f"the steps trained: {state.stop_reason or spent}")
+    write_json(out / RUN_INFO, info | trainer.resolved.to_dict())
+    trainer.save(out / CHECKPOINT)
+    metrics = evaluate_run(trainer, ds, out, progress) if evaluate else {"test": None}
+    import torch
 
+    metrics |= {
+        "dataset": str(dataset_path.resolve()),
+        "steps": trainer.step,
+        "train_seconds": trainer.train_seconds,
+        "ms_per_step_median": float(np.median(ms)) if ms else None,
+        "threads": torch.get_num_threads(),
+        "parameters": trainer.field.parameter_count(),
+        "photometric": trainer.photometric.summary(),
+        "config": dataclasses.asdict(trainer.cfg),
+        "reasons": dict(trainer.resolved.reasons),
+        "history": history,
+        "curve": state.curve,
+        "until": dataclasses.asdict(until) | {"stop_reason": state.stop_reason},
+    }
+    write_json(out / METRICS, metrics)
+    return metrics
+
+
+def _start(
+    ds: Dataset,
+    dataset_path: Path,
+    cfg: TrainConfig,
+    out: Path,
+    resume: bool,
+    resume_from: str | Path | None,
+    backend: str,
+    memory_fn: MemoryFn | None,
+    evaluate: bool,
+) -> Trainer:
+    """The trainer a run starts from (new, its own checkpoint resumed, or another run's model
+    continued), every input checked first (see :func:`train_run`); creates ``out``."""
     from .evaluate import test_views
     from .trainer import Trainer
 
-    dataset_path = Path(dataset_path)
-    out = Path(out_dir)
-    ds = open_dataset(dataset_path, kinds=DATASET_KINDS)
     wanted = resolve(cfg, ds, sha256_file(dataset_path), memory_fn)
     if evaluate and test_views(ds).size == 0:
         raise InputError(
-            "has no test or val views to evaluate on: re-run `dronecap split`, or pass "
-            "--no-eval to train without a test score",
+            "has no test or val views to evaluate on: re-run `dronecap split`, or set no_eval "
+            "to train without a test score",
             dataset_path,
         )
     if out.exists() and not out.is_dir():
@@ -244,17 +283,26 @@ def train_run(
     if resume_from is not None:
         source = Path(resume_from)
         source = source / CHECKPOINT if source.is_dir() else source
-        trainer = _resume(source, ds, dataset_path, wanted, True, backend, auto)
-    elif resume and ckpt.exists():
-        trainer = _resume(ckpt, ds, dataset_path, wanted, False, backend, auto)
-    else:
-        trainer = Trainer(wanted, ds, backend=backend)
-    info = {"dataset": str(dataset_path.resolve())} | trainer.resolved.to_dict()
-    if resume_from is not None:
-        info["resumed_from"] = str(Path(resume_from).resolve())
-    write_json(out / RUN_INFO, info)
-    print("\n".join(choice_lines(trainer.resolved, trainer.cfg.sized)))
-    until = until or BudgetConfig()
+        return _resume(source, ds, dataset_path, wanted, True, backend, auto)
+    if resume and ckpt.exists():
+        return _resume(ckpt, ds, dataset_path, wanted, False, backend, auto)
+    return Trainer(wanted, ds, backend=backend)
+
+
+def _loop(
+    trainer: Trainer,
+    ds: Dataset,
+    until: BudgetConfig,
+    out: Path,
+    progress: bool,
+    checkpoint_every: int,
+) -> tuple[budget.BudgetState, list[float], list[dict]]:
+    """Train until ``until`` says stop, checking held-out views and checkpointing on the way
+    (a checkpoint on Ctrl-C too). Returns (the budget state, ms of every step, the history
+    rows: one every 100 steps and the last)."""
+    from dronecap.progress import progress_bar
+
+    ckpt = out / CHECKPOINT
     state = budget.start(until, trainer.cfg.steps, trainer.step, trainer.train_seconds)
     held_out = budget.held_out_views(ds.split, until.check_views)
     ms: list[float] = []
@@ -265,7 +313,7 @@ def train_run(
     )  # fmt: skip
     try:
         while not budget.finished(state, trainer.step):
-            trainer.cfg = trainer.cfg.replace(steps=state.planned_steps)  # lr follows the plan
+            trainer.plan(state.planned_steps)  # the lr decay follows the plan
             log = trainer.train_step()
             ms.append(log["ms"])
             budget.after_step(until, state, trainer.step, trainer.train_seconds, log["ms"] / 1e3)
@@ -286,34 +334,14 @@ def train_run(
                     {k: log[k] for k in ("step", "loss", "psnr", "samples", "rays")}
                     | {"seconds": trainer.train_seconds}
                 )
-            if trainer.step % checkpoint_every == 0 or done:
+            if trainer.step % checkpoint_every == 0 and not done:
                 trainer.save(ckpt)
     except KeyboardInterrupt:
         bar.close()
         trainer.save(ckpt)
         raise
     bar.close()
-    if not ckpt.exists():  # zero steps asked: still leave a loadable run
-        trainer.save(ckpt)
-    metrics = evaluate_run(trainer, ds, out, progress) if evaluate else {"test": None}
-    import torch
-
-    metrics |= {
-        "dataset": str(dataset_path.resolve()),
-        "steps": trainer.step,
-        "train_seconds": trainer.train_seconds,
-        "ms_per_step_median": float(np.median(ms)) if ms else None,
-        "threads": torch.get_num_threads(),
-        "parameters": trainer.field.parameter_count(),
-        "photometric": trainer.photometric.summary(),
-        "config": dataclasses.asdict(trainer.cfg),
-        "reasons": dict(trainer.resolved.reasons),
-        "history": history,
-        "curve": state.curve,
-        "until": dataclasses.asdict(until) | {"stop_reason": state.stop_reason},
-    }
-    write_json(out / METRICS, metrics)
-    return metrics
+    return state, ms, history
 
 
 def _check(

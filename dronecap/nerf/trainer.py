@@ -17,7 +17,6 @@ import dataclasses
 import math
 import time
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -27,14 +26,15 @@ from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
 from . import occupancy
+from .batch import RayBatch, draw_rays, whole_rays
 from .checkpoint import checkpoint_resolved, read_checkpoint, write_checkpoint
 from .config import TrainConfig
-from .field import Field
+from .field import DTYPES, Field
 from .losses import huber_sum, psnr_from_mse
 from .march_kernel import march_function
-from .marching import Samples, take_rays
-from .photometric import Photometric, normalized_radius
-from .rays import camera_rays, ray_aabb
+from .marching import Samples
+from .photometric import Photometric
+from .rays import ray_aabb
 from .render import Volume, render_rays, render_view
 from .resolve import Resolved, resolve, training_frames
 from .volrend import render_packed
@@ -45,22 +45,6 @@ PHOTOMETRIC_GROUP = 2  # index of the photometric parameters' Adam group (when i
 
 class TrainingDiverged(InputError):
     """Training kept producing non-finite losses; the last good weights were kept."""
-
-
-class RayBatch(NamedTuple):
-    """The rays of one step: where they start and go, what their pixels saw, where they came
-    from (for the camera's photometric model)."""
-
-    origins: torch.Tensor  # [R, 3] scene units
-    dirs: torch.Tensor  # [R, 3] unit directions
-    target: torch.Tensor  # [R, C] pixel colour in [0, 1] (composited on ``bg`` with alpha)
-    bg: torch.Tensor  # [R, C] background the rendered colour is composited on
-    frame: torch.Tensor  # [R] int64 training-frame index
-    radius: torch.Tensor  # [R] pixel distance from the principal point (nerf.photometric)
-
-    def head(self, n: int) -> RayBatch:
-        """The first ``n`` rays."""
-        return RayBatch(*(t[:n] for t in self))
 
 
 class Trainer:
@@ -91,9 +75,8 @@ class Trainer:
 
     def _setup(self, resolved: Resolved, device: str, backend: str) -> None:
         cfg, scene = resolved.config, resolved.scene
-        self.resolved = resolved
-        self.cfg = cfg
-        self.scene = scene
+        self.resolved, self.cfg, self.scene = resolved, cfg, scene
+        self.lr_steps = cfg.steps  # the step count the lr decay runs to (see plan)
         self.device = torch.device(device)
         torch.manual_seed(cfg.seed)
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
@@ -128,8 +111,7 @@ class Trainer:
             cfg.grid_res, cfg.grid_decay, cfg.grid_threshold, cfg.grid_warmup, cfg.grid_every
         )
         self.grid = occupancy.init_state(self.grid_cfg, self.device)
-        self.step = 0
-        self.train_seconds = 0.0
+        self.step, self.train_seconds = 0, 0.0
         self.samples_per_ray = float(min(cfg.max_samples_per_ray, cfg.march_steps))
         self.images = None
         self.camera: Camera | None = None
@@ -167,30 +149,35 @@ class Trainer:
         if cfg.lr_schedule == "constant":
             return cfg.lr
         if cfg.lr_schedule == "exp":
-            return cfg.lr * cfg.lr_final_ratio ** min(step / max(cfg.steps, 1), 1.0)
+            return cfg.lr * cfg.lr_final_ratio ** min(step / max(self.lr_steps, 1), 1.0)
         raise InputError(f"unknown lr_schedule {cfg.lr_schedule!r}: use 'exp' or 'constant'")
 
     def _draw_rays(self, n_rays: int) -> RayBatch:
         """Random pixels of ``images_per_step`` random training images: rays and targets."""
-        g, dev = self.generator, self.device
-        n_img, h, w, c = self.images.shape
-        imgs = torch.randint(
-            n_img, (min(self.cfg.images_per_step, n_img),), generator=g, device=dev
-        )
-        which = imgs[torch.randint(imgs.numel(), (n_rays,), generator=g, device=dev)]
-        u = torch.randint(w, (n_rays,), generator=g, device=dev)
-        v = torch.randint(h, (n_rays,), generator=g, device=dev)
-        origins, dirs = camera_rays(self.poses[which], self.camera, u, v)
-        rgb = self.images[which, v, u].float() / 255.0
-        if self.alpha is not None:
-            a = (self.alpha[which, v, u].float() / 255.0).unsqueeze(-1)
-            bg = torch.rand((n_rays, c), generator=g, device=dev)
-            target = rgb * a + bg * (1.0 - a)
-        else:
-            bg = torch.as_tensor(self.scene.background, dtype=torch.float32, device=dev)
-            bg = bg.expand(n_rays, c)
-            target = rgb
-        return RayBatch(origins, dirs, target, bg, which, normalized_radius(u, v, self.camera))
+        return draw_rays(
+            self.images, self.alpha, self.poses, self.camera, self.scene.background,
+            self.cfg.images_per_step, n_rays, self.generator,
+        )  # fmt: skip
+
+    def plan(self, steps: int) -> None:
+        """Decay the learning rate over ``steps`` from now on (a time budget re-plans it); the
+        configuration's ``steps`` stays what was asked until :meth:`finish`."""
+        self.lr_steps = steps
+
+    def adopt(self, resolved: Resolved) -> None:
+        """Go on with ``resolved``: a resumed model's new step target, data-decided fields and
+        MLP products (the caller checks nothing else changed and keeps the model's n_max)."""
+        self.resolved, self.cfg, self.lr_steps = resolved, resolved.config, resolved.config.steps
+        self.field.product_dtype = DTYPES[self.cfg.mlp_dtype]
+
+    def finish(self, why: str) -> None:
+        """Make the steps trained the configuration's ``steps`` (``why``: its reason), when a
+        budget or an early stop ended training elsewhere than the steps asked: run.json,
+        metrics.json, the checkpoint and the cost report then all give what ran."""
+        if self.step != self.cfg.steps:
+            r = self.resolved
+            steps = r.config.replace(steps=self.step)
+            self.adopt(Resolved(steps, r.scene, r.reasons | {"steps": why}, r.dataset_sha256))
 
     def _march_batch(self) -> tuple[RayBatch, Samples]:
         """Rays of one step and their samples, cut to at most B samples (whole rays)."""
@@ -202,24 +189,11 @@ class Trainer:
         t_near, t_far, _ = ray_aabb(rays.origins, rays.dirs, self.aabb)
         jitter = torch.rand(n_rays, generator=self.generator, device=self.device)
         s = self.march(
-            rays.origins,
-            rays.dirs,
-            t_near,
-            t_far,
-            self.step_size,
-            self.grid,
-            self.aabb,
-            cfg.max_samples_per_ray,
-            jitter,
-        )
+            rays.origins, rays.dirs, t_near, t_far, self.step_size, self.grid, self.aabb,
+            cfg.max_samples_per_ray, jitter,
+        )  # fmt: skip
         self.samples_per_ray = max(s.n / n_rays, 0.01)
-        cum = torch.cumsum(s.counts, 0)
-        keep = int(torch.searchsorted(cum, torch.tensor(cfg.batch_samples), right=True))
-        keep = max(keep, 1)
-        if keep < n_rays:
-            s = take_rays(s, torch.arange(keep, device=self.device))
-            rays = rays.head(keep)
-        return rays, s
+        return whole_rays(rays, s, cfg.batch_samples)
 
     def _render_rays(self, origins, dirs, s: Samples, bg):
         """Colour [R, C] of rays through the field (with autograd)."""
@@ -319,9 +293,8 @@ class Trainer:
         }
 
     def train(self, steps: int) -> list[dict]:
-        """Run ``steps`` more optimizer steps from ``self.step``, quietly; per-step logs. (A
-        run folder's loop, with budgets, checks, checkpoints and progress, is
-        :func:`nerf.run_dir.train_run`; this is the bare loop federated clients and tests use.)"""
+        """Run ``steps`` more optimizer steps, quietly; per-step logs (the bare loop of federated
+        clients and tests; a run folder's, with budgets and checkpoints, is nerf.run_dir's)."""
         if self.images is None:
             raise InputError("trainer has no training data (pass `train=` to Trainer.load)")
         self.field.train()

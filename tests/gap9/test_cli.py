@@ -62,7 +62,6 @@ def test_report_run_dir_and_set(tmp_path):
         ["--set", "batch_samples=lots"],
         ["--preset", "no-such-preset"],
         ["--platform", "missing.yaml"],
-        ["--search", "--budget-l3", "32 parsecs"],
         ["--search"],
         ["--images", "-5"],
         ["--images", "0"],
@@ -86,6 +85,15 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys, argv):
     err = capsys.readouterr().err
     assert err.startswith("dronecap cost: error:") and err.count("\n") == 1
     assert not (tmp_path / "cost.json").exists()
+
+
+def test_a_budget_that_is_not_a_size_is_refused_by_the_parser(tmp_path, capsys):
+    """budget_l3 is typed (bytes, parsed once): the CLI refuses text in one line, exit 2."""
+    with pytest.raises(SystemExit) as stop:
+        main(["cost", "--workdir", str(tmp_path), "--search", "--budget-l3", "32 parsecs"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--budget-l3" in err and "unknown unit 'parsecs'" in err
 
 
 def test_run_dir_without_config(tmp_path, capsys):

@@ -138,7 +138,6 @@ def test_fixed_steps_record_ten_checks(cube_h5, tmp_path):
     "option, words",
     [
         (["--time-budget", "-5"], "time budget"),
-        (["--time-budget", "soon"], "--time-budget takes a number"),
         (["--target-psnr", "nan"], "target PSNR"),
         (["--plateau-db", "-1"], "plateau"),
     ],
@@ -150,6 +149,20 @@ def test_bad_budget_options_are_one_line(cube_h5, tmp_path, capsys, option, word
     assert main(["train", str(cube_h5), *option, "--out", str(out), "--no-progress"]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and words in err
+    assert not out.exists()
+
+
+def test_a_budget_that_is_not_a_number_is_refused_by_the_parser(cube_h5, tmp_path, capsys):
+    """time_budget is typed (float): the CLI refuses text in one line, exit code 2."""
+    from dronecap.cli import main
+
+    out = tmp_path / "r"
+    args = ["train", str(cube_h5), "--time-budget", "soon", "--out", str(out)]
+    with pytest.raises(SystemExit) as stop:
+        main(args)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--time-budget" in err and "soon" in err
     assert not out.exists()
 
 

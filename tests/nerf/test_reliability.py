@@ -83,7 +83,7 @@ def test_no_test_views_needs_no_eval(cube_rgb, tmp_path, capsys):
     all_train = _variant(cube_rgb, tmp_path, "all_train", np.zeros(cube_rgb.n, np.int8))
     run = tmp_path / "run"
     assert main(["train", all_train, "--out", str(run), "--steps", "5", *FAST]) == 1
-    assert "--no-eval" in _one_line_error(capsys, "train")
+    assert "no_eval" in _one_line_error(capsys, "train")  # the setting (--no-eval on the CLI)
     assert not run.exists()
     assert main(["train", all_train, "--out", str(run), "--steps", "5", "--no-eval", *FAST]) == 0
     assert "not evaluated" in capsys.readouterr().out

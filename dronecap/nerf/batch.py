@@ -1,0 +1,82 @@
+"""The rays of one training step: random pixels of a few random training images.
+
+:func:`draw_rays` picks ``images_per_step`` training images, then random pixels of them, and
+returns their rays through the camera model, their target colours (composited on a random
+background when the images have alpha) and what the photometric model needs (frame, radius).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from dronecap.camera import Camera
+
+from .marching import Samples, take_rays
+from .photometric import normalized_radius
+from .rays import camera_rays
+
+
+class RayBatch(NamedTuple):
+    """The rays of one step: where they start and go, what their pixels saw, where they came
+    from (for the camera's photometric model)."""
+
+    origins: torch.Tensor  # [R, 3] scene units
+    dirs: torch.Tensor  # [R, 3] unit directions
+    target: torch.Tensor  # [R, C] pixel colour in [0, 1] (composited on ``bg`` with alpha)
+    bg: torch.Tensor  # [R, C] background the rendered colour is composited on
+    frame: torch.Tensor  # [R] int64 training-frame index
+    radius: torch.Tensor  # [R] pixel distance from the principal point (nerf.photometric)
+
+    def head(self, n: int) -> RayBatch:
+        """The first ``n`` rays."""
+        return RayBatch(*(t[:n] for t in self))
+
+
+def draw_rays(
+    images: torch.Tensor,
+    alpha: torch.Tensor | None,
+    poses: torch.Tensor,
+    camera: Camera,
+    background: tuple[float, ...],
+    images_per_step: int,
+    n_rays: int,
+    generator: torch.Generator,
+) -> RayBatch:
+    """``n_rays`` random pixels of ``images_per_step`` random frames of ``images``.
+
+    Args:
+        images: uint8 [N, H, W, C] training frames.
+        alpha: uint8 [N, H, W] or None.
+        poses: float32 [N, 4, 4] camera-to-world.
+        camera: the frames' camera (lens model included).
+        background: [C] colour in [0, 1] for frames without alpha.
+    """
+    g, dev = generator, images.device
+    n_img, h, w, c = images.shape
+    imgs = torch.randint(n_img, (min(images_per_step, n_img),), generator=g, device=dev)
+    which = imgs[torch.randint(imgs.numel(), (n_rays,), generator=g, device=dev)]
+    u = torch.randint(w, (n_rays,), generator=g, device=dev)
+    v = torch.randint(h, (n_rays,), generator=g, device=dev)
+    origins, dirs = camera_rays(poses[which], camera, u, v)
+    rgb = images[which, v, u].float() / 255.0
+    if alpha is not None:
+        a = (alpha[which, v, u].float() / 255.0).unsqueeze(-1)
+        bg = torch.rand((n_rays, c), generator=g, device=dev)
+        target = rgb * a + bg * (1.0 - a)
+    else:
+        bg = torch.as_tensor(background, dtype=torch.float32, device=dev).expand(n_rays, c)
+        target = rgb
+    return RayBatch(origins, dirs, target, bg, which, normalized_radius(u, v, camera))
+
+
+def whole_rays(rays: RayBatch, s: Samples, batch_samples: int) -> tuple[RayBatch, Samples]:
+    """The first rays of a marched batch whose samples fit in ``batch_samples`` (whole rays,
+    at least one)."""
+    cum = torch.cumsum(s.counts, 0)
+    keep = max(int(torch.searchsorted(cum, torch.tensor(batch_samples), right=True)), 1)
+    if keep < rays.origins.shape[0]:
+        s = take_rays(s, torch.arange(keep, device=rays.origins.device))
+        rays = rays.head(keep)
+    return rays, s
