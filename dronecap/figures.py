@@ -12,6 +12,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from dronecap import workspace as ws
+
 
 def _json(path: Path) -> dict[str, Any]:
     try:
@@ -38,12 +40,12 @@ def _h5_frames(stage_dir: Path, name: str) -> str:
 
 def ingest(stage_dir: Path) -> str:
     """Frames kept by ingest."""
-    return _h5_frames(stage_dir, "frames.h5") + " kept"
+    return _h5_frames(stage_dir, ws.FRAMES) + " kept"
 
 
 def sfm(stage_dir: Path) -> str:
     """Registration rate and, with ground truth, pose accuracy."""
-    rep = _json(_find(stage_dir, "report.json"))
+    rep = _json(_find(stage_dir, ws.SFM_REPORT))
     if not rep:
         return ""
     reg = rep.get("registration_rate")
@@ -58,9 +60,9 @@ def sfm(stage_dir: Path) -> str:
 
 def train(stage_dir: Path) -> str:
     """Test PSNR/SSIM and the GAP9 verdict."""
-    m = _json(_find(stage_dir, "metrics.json")).get("test") or {}  # None: --no-eval
+    m = _json(_find(stage_dir, ws.METRICS)).get("test") or {}  # None: --no-eval
     text = f"PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}" if "psnr" in m else ""
-    cost = _json(_find(stage_dir, "cost.json"))
+    cost = _json(_find(stage_dir, ws.COST))
     verdicts = cost.get("verdicts", {})
     if verdicts:
         fits = all(v.get("fits") for k, v in verdicts.items() if k in ("l1", "l2", "l3"))
@@ -72,14 +74,14 @@ def train(stage_dir: Path) -> str:
 
 def federate(stage_dir: Path) -> str:
     """The global model's last PSNR."""
-    rounds = _json(_find(stage_dir, "rounds.json"))
+    rounds = _json(_find(stage_dir, ws.ROUNDS))
     last = (rounds.get("rounds") or [{}])[-1] if isinstance(rounds, dict) else {}
     return f"global PSNR {last['psnr']:.2f} dB" if "psnr" in last else ""
 
 
 def dataset(stage_dir: Path) -> str:
     """Frames in the dataset written."""
-    return _h5_frames(stage_dir, "dataset.h5")
+    return _h5_frames(stage_dir, ws.DATASET)
 
 
 def shards(stage_dir: Path) -> str:
@@ -89,11 +91,11 @@ def shards(stage_dir: Path) -> str:
 
 RESULT_FILES = (
     "report.md",
-    "report.json",
+    ws.SFM_REPORT,
     "points.ply",
-    "metrics.json",
-    "compare.png",
-    "rounds.json",
+    ws.METRICS,
+    ws.COMPARE,
+    ws.ROUNDS,
 )
 
 

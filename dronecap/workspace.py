@@ -18,6 +18,15 @@ SFM_DIR = "sfm"  # sparse model, PLY, report beside posed.h5
 TRAIN_RUN = "runs/train"  # train -> render, eval, cost
 FEDERATE_RUN = "runs/federate"
 TRANSFORMS = "transforms"  # export-transforms
+FLIGHT_VIDEO = "flight.mp4"  # simulate
+FLIGHT_INFO = "flight.json"  # simulate: the ground truth beside the video
+CALIBRATION = "calib.json"  # calibrate -> ingest --intrinsics
+COST = "cost.json"  # cost (and train, inside its run folder)
+PARETO = "pareto.png"  # cost --search
+SFM_REPORT = "report.json"  # sfm, inside SFM_DIR
+METRICS = "metrics.json"  # train, inside its run folder
+COMPARE = "compare.png"  # train: ground truth | render
+ROUNDS = "rounds.json"  # federate
 
 
 def resolve(workdir: str | Path | None, explicit: str | Path | None, default: str) -> Path:

@@ -12,13 +12,14 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
+from dronecap import workspace
 from dronecap.calibration.calibrate import MAX_VIEW_ERROR_PX, MODELS
 from dronecap.calibration.targets import PATTERNS, SUBPIX_WINDOW
 from dronecap.calibration.views import MAX_VIEWS
 from dronecap.stage import Settings as Base
 from dronecap.stage import setting
 
-OUTPUT = "calib.json"  # default output, in the workspace
+OUTPUT = workspace.CALIBRATION  # default output, in the workspace
 
 
 @dataclass(kw_only=True)

@@ -108,7 +108,7 @@ def _config(args: Settings):
             cfg = preset(args.preset or "tiny-dronerf")
         except KeyError as err:
             raise InputError(str(err.args[0])) from err
-        default_out = workspace.resolve(args.workdir, None, "cost.json")
+        default_out = workspace.resolve(args.workdir, None, workspace.COST)
     try:
         cfg = apply_sets(cfg, args.set)
     except (ValueError, TypeError) as err:

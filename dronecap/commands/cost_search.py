@@ -67,7 +67,7 @@ def search(args: Settings) -> int:
         )
     evaluate(points, budget, target)
     chosen = choose(points, args.tolerance_db)
-    out = Path(args.plot) if args.plot else workspace.resolve(args.workdir, None, "pareto.png")
+    out = Path(args.plot) if args.plot else workspace.resolve(args.workdir, None, workspace.PARETO)
     budget_mb = None if budget.l3 is None else budget.l3 / 1e6
     drawn = pareto_plot(points, chosen, out, budget_mb, f"memory vs PSNR: {title}")
     if chosen is None:
