@@ -22,8 +22,9 @@ DOMAINS = frozenset(
 )  # fmt: skip
 CLI_LAYER = frozenset(
     {"cli", "stage", "stages", "stage_common", "pipeline", "pipeline_spec", "figures",
-     "report_html", "commands"}
+     "report_html", "commands", "pictures", "workspace"}
 )  # fmt: skip
+BASES = frozenset({"plots", "files", "errors", "progress", "cpu"})  # shared by every layer
 MAX_MODULE_LINES = 450
 MAX_FUNCTION_LINES = 80
 
@@ -153,6 +154,17 @@ def test_no_domain_imports_the_cli_layer():
         if top(module_name(path)) in DOMAINS
         for m in imported(path)
         if top(m) in CLI_LAYER
+    ]
+    assert bad == []
+
+
+def test_the_shared_bases_import_no_domain_nor_the_cli():
+    bad = [
+        f"{path.relative_to(ROOT)} imports {m}"
+        for path in modules()
+        if top(module_name(path)) in BASES
+        for m in imported(path)
+        if top(m) in DOMAINS | CLI_LAYER
     ]
     assert bad == []
 

@@ -24,7 +24,7 @@ from dronecap.errors import InputError
 MODELS = ("pinhole", "fisheye")
 MIN_VIEWS = 3  # fewer views of a plane leave focal length and distortion unconstrained
 REJECT_FACTOR = 3.0  # a view is rejected when its RMS error exceeds this x the median ...
-MAX_VIEW_ERROR_PX = 2.0  # ... and this many pixels (default of --max-view-error)
+MAX_VIEW_ERROR_PX = 2.0  # ... and this many pixels (default of the max_view_error setting)
 RMS_WARN_PX = 1.0  # a calibration with a larger RMS error is suspect
 COVERAGE_GRID = 5  # the image is split in 5x5 cells; the border ones should see corners:
 BORDER_REGIONS = {  # region -> its cells (row, column) in that grid
@@ -138,7 +138,7 @@ def calibrate(
         InputError: fewer than ``MIN_VIEWS`` views, or OpenCV cannot solve.
     """
     if model not in MODELS:
-        raise InputError(f"--model must be one of {', '.join(MODELS)}, found {model!r}")
+        raise InputError(f"model must be one of {', '.join(MODELS)}, found {model!r}")
     rejected = dict(rejected or {})
     _check_count(views, rejected, board)
     cam, errors, std = _solve(views, size, model)
@@ -164,8 +164,8 @@ def _check_count(views: list[View], rejected: dict[str, str], board: Board) -> N
     what = f"{board.pattern} {board.cols}x{board.rows}"
     if not views:
         raise InputError(
-            f"no {what} board found in any of the {total} images (check --pattern, --board "
-            "and, for ArUco boards, --dictionary)"
+            f"no {what} board found in any of the {total} images (check the pattern, board "
+            "and, for ArUco boards, dictionary settings)"
         )
     if len(views) < MIN_VIEWS:
         raise InputError(
@@ -264,12 +264,12 @@ def _warnings(
         out.append(
             f"in {len(tight)} views the corners are closer (down to "
             f"{min(views[n].spacing for n in tight):.0f} px) than the corner refinement window "
-            "is wide: use --subpix-window 0 (sized to the board) or bigger squares"
+            "is wide: use subpix_window 0 (sized to the board) or bigger squares"
         )
     if cal.rms > RMS_WARN_PX:
         out.append(
             f"RMS reprojection error {cal.rms:.2f} px is high (blur, a bent board, or the wrong "
-            "--board size)"
+            "board size)"
         )
     return out
 

@@ -76,16 +76,16 @@ class Board:
         if self.cols < least or self.rows < least:
             out.append(f"a {self.pattern} board needs at least {least}x{least}")
         if self.subpix_window < 0:
-            out.append(f"--subpix-window must be 0 (auto) or positive, found {self.subpix_window}")
+            out.append(f"subpix_window must be 0 (auto) or positive, found {self.subpix_window}")
         if self.pattern != "aruco-grid" and not self.square > 0:
-            out.append(f"--square must be positive, found {self.square}")
+            out.append(f"square must be positive, found {self.square}")
         if self.pattern == "charuco" and not (self.marker and 0 < self.marker < self.square):
-            out.append(f"--marker must be positive and smaller than --square, found {self.marker}")
+            out.append(f"marker must be positive and smaller than square, found {self.marker}")
         if self.pattern == "aruco-grid":
             if not (self.marker and self.marker > 0):
-                out.append(f"--marker must be positive, found {self.marker}")
+                out.append(f"marker must be positive, found {self.marker}")
             if not (self.gap and self.gap > 0):
-                out.append(f"--gap must be positive, found {self.gap}")
+                out.append(f"gap must be positive, found {self.gap}")
         if self.pattern != "chessboard":
             if not hasattr(cv2.aruco, self.dictionary):
                 out.append(f"unknown ArUco dictionary {self.dictionary!r}")

@@ -21,7 +21,7 @@ from dronecap.calibration.calibrate import View
 from dronecap.calibration.targets import Board
 from dronecap.errors import InputError
 
-MAX_VIEWS = 30  # default --max-views: plenty for 9 intrinsics, still a quick solve
+MAX_VIEWS = 30  # default of the max_views setting: plenty for 9 intrinsics, still a quick solve
 CANDIDATES_PER_VIEW = 4  # sharpest frame of each of 4 x max_views stretches is a candidate
 BLUR_RATIO = 0.3  # a candidate sharper than this x the median sharpness is not blurry
 MIN_SPREAD = 0.02  # outlines closer than this (mean corner distance / image diagonal) repeat
@@ -79,7 +79,7 @@ def pick_video_views(
 
     src = open_source(path)
     if src.info.kind != "video":
-        raise InputError("--video must be a video file (give images as IMAGES...)", path)
+        raise InputError("video must be a video file (give images as the images setting)", path)
     name = Path(path).name
     expected = src.info.expected_frames or 0
     if expected:
@@ -156,7 +156,7 @@ def spread_views(
         views[j].name: (
             f"near-duplicate of {views[nearest[j]].name}"
             if dist[j] < MIN_SPREAD
-            else f"more than --max-views {max_views} spread views"
+            else f"more than max_views {max_views} spread views"
         )
         for j in range(len(views))
         if j not in chosen

@@ -67,7 +67,7 @@ def load_camera(spec: str, source_size: tuple[int, int]) -> tuple[Camera, str]:
             fx, fy, cx, cy = (float(v) for v in parts)
         except ValueError:
             raise InputError(
-                f"--intrinsics must be 'fx,fy,cx,cy' or a calibration file, got {spec!r}"
+                f"intrinsics must be 'fx,fy,cx,cy' or a calibration file, got {spec!r}"
             ) from None
         cam, origin = Camera(fx, fy, cx, cy, *source_size), "calibration"
     problems = cam.problems()

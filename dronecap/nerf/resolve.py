@@ -261,7 +261,7 @@ def _size(
     try:
         sizing = size_to_scene(cfg, facts, memory_fn, budget, keep)
     except ValueError as err:
-        raise InputError(f"{err} (raise --budget-mb or set log2_hashmap)") from None
+        raise InputError(f"{err} (raise budget_mb or set log2_hashmap)") from None
     return sizing.config, {c.field: c.reason for c in sizing.choices}
 
 

@@ -154,8 +154,8 @@ def _resume(
     if not same:
         if not other_ok:
             raise InputError(
-                "was trained on another dataset (its content hash differs); pass --no-resume "
-                "to start over, or --resume-from RUN_DIR with a new --out to continue that "
+                "was trained on another dataset (its content hash differs); set no_resume to "
+                "start over, or resume_from to this run with a new out to continue that "
                 "model on this dataset",
                 source.parent,
             )
@@ -171,7 +171,7 @@ def _resume(
     if changed:
         raise InputError(
             f"was trained with a different configuration ({', '.join(changed)}); "
-            "pass --no-resume to start over or choose another --out",
+            "set no_resume to start over or choose another out",
             source,
         )
     reasons = wanted.reasons | {"n_max": old.reasons.get("n_max", "the resumed model's")}
@@ -400,10 +400,10 @@ def open_run(run_dir: str | Path, dataset: str | Path | None = None) -> tuple[Tr
     if dataset is None:
         info_path = run_dir / RUN_INFO
         if not info_path.exists():
-            raise InputError("no run.json naming the dataset; pass --dataset", run_dir)
+            raise InputError("no run.json naming the dataset; give the dataset setting", run_dir)
         dataset = _read_json(info_path).get("dataset")
         if not isinstance(dataset, str):
-            raise InputError("names no dataset; pass --dataset", info_path)
+            raise InputError("names no dataset; give the dataset setting", info_path)
     ds = open_dataset(dataset, kinds=DATASET_KINDS)
     trainer = Trainer.load(run_dir / CHECKPOINT)
     if not trainer.weights_finite():

@@ -275,7 +275,7 @@ class Trainer:
             if self._bad_steps >= MAX_BAD_STEPS:
                 raise TrainingDiverged(
                     f"training diverged: {self._bad_steps} consecutive non-finite losses at step "
-                    f"{self.step}; weights of the last good step are kept (try a lower --lr)"
+                    f"{self.step}; weights of the last good step are kept (try a lower lr)"
                 )
         self.step += 1
         ms = 1000 * (time.perf_counter() - t0)

@@ -53,8 +53,7 @@ def _one_line_error(capsys, command: str) -> str:
         ("--lr-schedule", "cosine", "lr_schedule must be one of exp, constant"),
         ("--seed", "-1", "seed must be >= 0"),
         ("--threads", "0", "--threads takes a positive number"),
-        ("--checkpoint-every", "0", "--checkpoint-every takes a positive integer"),
-        ("--checkpoint-every", "x", "--checkpoint-every takes a positive integer"),
+        ("--checkpoint-every", "0", "--checkpoint-every must be >= 1, got 0"),
     ],
 )
 def test_bad_train_options_are_one_line_before_any_work(
@@ -65,6 +64,17 @@ def test_bad_train_options_are_one_line_before_any_work(
     assert main([*argv, option, value]) == 1
     assert says in _one_line_error(capsys, "train")
     assert not run.exists()  # refused before the run folder was made
+
+
+def test_a_step_count_that_is_not_an_integer_is_refused_by_the_parser(cube_h5, tmp_path, capsys):
+    """checkpoint_every is typed (int): the CLI refuses text in one line, exit code 2."""
+    run = tmp_path / "run"
+    with pytest.raises(SystemExit) as stop:
+        main(["train", str(cube_h5), "--out", str(run), "--checkpoint-every", "x"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--checkpoint-every" in err and "'x'" in err
+    assert not run.exists()
 
 
 def _variant(cube_rgb, tmp_path, name: str, split) -> str:
