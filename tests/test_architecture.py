@@ -25,6 +25,19 @@ CLI_LAYER = frozenset(
      "report_html", "commands", "pictures", "workspace"}
 )  # fmt: skip
 BASES = frozenset({"plots", "files", "errors", "progress", "cpu"})  # shared by every layer
+# The "may use" column of docs/architecture.md's package table: domain -> the domains it may
+# import. Keep the two in step.
+MAY_USE: dict[str, frozenset[str]] = {
+    "camera": frozenset(),
+    "calibration": frozenset({"camera", "capture"}),
+    "capture": frozenset({"camera"}),
+    "simulator": frozenset({"camera"}),
+    "datasets": frozenset({"camera"}),
+    "sfm": frozenset({"camera", "capture", "datasets"}),
+    "nerf": frozenset({"camera", "datasets"}),
+    "gap9": frozenset({"nerf"}),
+    "federated": frozenset({"nerf", "datasets", "gap9"}),
+}
 MAX_MODULE_LINES = 450
 MAX_FUNCTION_LINES = 80
 
@@ -145,6 +158,13 @@ def test_no_loop_between_domain_packages():
         graph[a].discard(b)
         graph[b].discard(a)
     assert cycles(graph) == [], f"import loop between packages; graph: {graph}"
+
+
+def test_each_domain_uses_only_what_the_table_allows():
+    graph = package_graph()
+    known = {(a, b) for pair in KNOWN_LOOPS for a in pair for b in pair if a != b}
+    extra = {(a, b) for a, uses in graph.items() for b in uses - MAY_USE[a] if (a, b) not in known}
+    assert extra == set(), "imports the package table of docs/architecture.md does not allow"
 
 
 def imports_from(sources: frozenset[str], targets: frozenset[str]) -> list[str]:
