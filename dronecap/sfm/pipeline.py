@@ -78,6 +78,7 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         "chosen_model": summary["best"] and str(Path(summary["best"]).relative_to(res.work)),
         "matching": match_info,
         "init_pair": summary.get("init_pair"),
+        "bend_check": summary.get("bend_check"),
         "pose_jumps_remapped": summary.get("pose_jumps_remapped"),
         "keypoints_per_frame_median": float(np.median(list(keypoints.values())))
         if keypoints

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from dronecap.sfm.bend import rotation_disagreement
 from dronecap.sfm.camera_plan import CameraPlan
 from dronecap.sfm.colmap_steps import (
     FALLBACK_MIN_ANGLE,
@@ -124,12 +125,39 @@ def colmap_job(
             " (a camera turning in place or hovering gives no baseline)"
         )
         return out
+    size = _settle(
+        out, found, root, names, len(usable), opts, refine_camera, deadline, phase, on_register
+    )
+    out["bend_check"] = rotation_disagreement(db, Path(out["best"]))
+    if refine_after:
+        t = phase("refine camera", size)
+        out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
+        times["refine_camera"] = time.perf_counter() - t
+    return out
+
+
+def _settle(
+    out: dict[str, Any],
+    found: dict[str, dict[str, float]],
+    root: Path,
+    names: list[str],
+    n_usable: int,
+    opts: SfmOptions,
+    refine_camera: bool,
+    deadline: float | None,
+    phase: Callable[..., float],
+    on_register: Callable[[int], None],
+) -> int:
+    """Choose the model to keep among ``found`` into ``out["best"]``; extend it when frames
+    are missing and re-register its pose jumps (both skipped once the time cap's ``deadline``
+    passed). Returns the frames of the chosen model before the extension."""
+    db, images, times = root / "database.db", root / "images", out["times"]
     # most frames first; among equals, the lower reprojection error (the better basin)
     best = max(found, key=lambda k: (found[k]["frames"], -found[k]["reproj"]))
     out["best"] = best
     out["init_pair"]["kept"] = Path(best).parent.name != ALT_MODELS  # our pair started it
     size = found[best]["frames"]
-    if opts.extend and size < len(usable) and not _out_of_time(deadline):
+    if opts.extend and size < n_usable and not _out_of_time(deadline):
         opts = _capped(opts, deadline)
         t = phase("extend", size)
         ext = incremental_map(
@@ -148,11 +176,7 @@ def colmap_job(
             db, images, root, Path(out["best"]), jumps, names, opts, refine_camera, on_register
         )
         times["remap_jumps"] = time.perf_counter() - t
-    if refine_after:
-        t = phase("refine camera", found[best]["frames"])
-        out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
-        times["refine_camera"] = time.perf_counter() - t
-    return out
+    return found[best]["frames"]
 
 
 def _capped(opts: SfmOptions, deadline: float | None) -> SfmOptions:
