@@ -30,6 +30,8 @@ OPTION_HELP = {
     "retry_budget": "seconds after which no new retry starts",
     "clahe": "contrast-normalise frames before SIFT (low-contrast, vignetted footage)",
     "prior_fallback": "frames that fail to register keep their telemetry prior pose in posed.h5",
+    "time_cap": "seconds of mapping after which the model so far is kept (0: no cap)",
+    "ba_global_ratio": "global bundle adjustment when the model grew by this factor",
     "quadratic_overlap": "sequential: pair frame i with i+2^k (COLMAP default) instead of "
     "i+1..i+overlap",
 }

@@ -39,7 +39,7 @@ def scene_model(ds: Dataset, names: list[str], sparse_model: str | Path | None) 
     """
     import pycolmap
 
-    from dronecap.sfm.camera_plan import colmap_camera
+    from dronecap.camera.colmap import colmap_camera
 
     model, params = colmap_camera(ds.intrinsics)
     k = ds.intrinsics

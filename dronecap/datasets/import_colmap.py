@@ -56,7 +56,7 @@ def model_camera(rec: Any, model_dir: Path) -> Intrinsics:
     Raises:
         InputError: several different cameras, or a COLMAP model dronecap has no lens for.
     """
-    from dronecap.sfm.camera_plan import camera_from_colmap
+    from dronecap.camera.colmap import camera_from_colmap
 
     used = {rec.images[i].camera_id for i in rec.reg_image_ids()}
     cams = []
@@ -99,9 +99,9 @@ def import_colmap(
     Raises:
         InputError: one line naming the file and what is wrong.
     """
+    from dronecap.datasets.colmap_model import model_arrays
     from dronecap.datasets.split import every_kth_split
     from dronecap.files import sha256_file
-    from dronecap.sfm.pipeline import model_arrays
 
     check_options(size, color)
     model_dir, images_dir = Path(model_dir), Path(images_dir)

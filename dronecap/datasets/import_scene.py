@@ -136,7 +136,7 @@ def scene_bounds(
     Raises:
         InputError: cameras whose up vectors cancel out (no up direction to orient by).
     """
-    from dronecap.sfm.normalize import (
+    from dronecap.datasets.normalize import (
         NormalizeSettings,
         apply_to_points,
         apply_to_poses,

@@ -25,10 +25,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dronecap.camera import Camera
+from dronecap.camera.colmap import colmap_camera
 from dronecap.datasets.format import Dataset, open_dataset
 from dronecap.errors import InputError
 
-ONE_PARAM_FOCAL = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")  # COLMAP models with a single f
 ESTIMATE_FOCAL_FACTOR = 1.2  # COLMAP's first guess of f: 1.2 x the larger image side
 ASPECT_TOLERANCE = 0.01  # --camera-from: image aspect ratios may differ by this fraction
 
@@ -54,30 +54,8 @@ class CameraPlan:
         return self.mode == "refine"
 
     def colmap(self) -> tuple[str, list[float]] | None:
-        """(COLMAP model name, params in COLMAP's order) or None; see :func:`colmap_camera`."""
+        """(COLMAP model name, params in COLMAP's order) or None (see ``camera.colmap``)."""
         return None if self.camera is None else colmap_camera(self.camera)
-
-
-def colmap_camera(k: Camera) -> tuple[str, list[float]]:
-    """(COLMAP model name, params) of a camera; a one-focal model with fx != fy becomes OPENCV
-    (same maths, two focal lengths). Pixel conventions agree: no shift."""
-    if k.model in ONE_PARAM_FOCAL and abs(k.fx - k.fy) > 1e-9 * k.fx:
-        d = (list(k.distortion) + [0.0] * 4)[:4]
-        return "OPENCV", [k.fx, k.fy, k.cx, k.cy, *d]
-    if k.model in ONE_PARAM_FOCAL:
-        return k.model, [k.fx, k.cx, k.cy, *k.distortion]
-    return k.model, [k.fx, k.fy, k.cx, k.cy, *k.distortion]
-
-
-def camera_from_colmap(model: str, params, width: int, height: int) -> Camera:
-    """dronecap Camera of a COLMAP camera (same pixel-centre convention, values unchanged)."""
-    p = [float(x) for x in params]
-    if model in ONE_PARAM_FOCAL:
-        fx = fy = p[0]
-        cx, cy, dist = p[1], p[2], tuple(p[3:])
-    else:
-        fx, fy, cx, cy, dist = p[0], p[1], p[2], p[3], tuple(p[4:])
-    return Camera(fx, fy, cx, cy, int(width), int(height), model=model, distortion=dist)
 
 
 def camera_of_posed(path: Path, width: int, height: int) -> Camera:

@@ -16,19 +16,22 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from dronecap.camera import Camera
+from dronecap.camera.colmap import camera_from_colmap
+from dronecap.datasets.colmap_model import model_arrays
 from dronecap.datasets.format import Dataset, open_dataset, provenance, write_dataset
+from dronecap.datasets.normalize import apply_to_points, apply_to_poses, near_far, normalize_scene
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, sha256_file
 from dronecap.sfm.align import DegenerateAlignment, accuracy_against, load_ground_truth
-from dronecap.sfm.camera_plan import CameraPlan, camera_from_colmap, plan_camera
+from dronecap.sfm.camera_plan import CameraPlan, plan_camera
 from dronecap.sfm.colmap_steps import MIN_KEYPOINTS
-from dronecap.sfm.normalize import apply_to_points, apply_to_poses, near_far, normalize_scene
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.priors import fit_to_priors, read_priors
 from dronecap.sfm.reconstruct import ColmapResult
@@ -41,35 +44,6 @@ PER_FRAME_EXTRAS = (
     "prior_valid",
     "frame_id",
 )  # frames.h5 extras with one row per frame
-
-
-def model_arrays(rec: Any, names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
-    """Registered frames of a pycolmap Reconstruction.
-
-    Args:
-        rec: pycolmap.Reconstruction.
-        names: work-folder name of every input frame (flight order).
-
-    Returns:
-        frame indices int [R] (sorted), c2w float64 [R, 4, 4] (OpenCV axes, COLMAP units),
-        points float64 [P, 3], and for each registered frame the int [P_i] row numbers (into
-        ``points``) of the points it observes.
-    """
-    pos = {n: i for i, n in enumerate(names)}
-    ids = sorted(rec.points3D.keys())
-    row = {pid: r for r, pid in enumerate(ids)}
-    points = np.array([rec.points3D[p].xyz for p in ids], dtype=np.float64).reshape(-1, 3)
-    regs = sorted((pos[rec.images[i].name], i) for i in rec.reg_image_ids())
-    idx = np.array([f for f, _ in regs], dtype=np.int64)
-    c2w = np.zeros((len(regs), 4, 4))
-    seen = []
-    for k, (_, image_id) in enumerate(regs):
-        image = rec.images[image_id]
-        w2c = np.eye(4)
-        w2c[:3] = image.cam_from_world().matrix()
-        c2w[k] = np.linalg.inv(w2c)
-        seen.append(np.array([row[p.point3D_id] for p in image.points2D if p.has_point3D()], int))
-    return idx, c2w, points, seen
 
 
 def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict[str, Any]:
@@ -104,6 +78,7 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         "chosen_model": summary["best"] and str(Path(summary["best"]).relative_to(res.work)),
         "matching": match_info,
         "init_pair": summary.get("init_pair"),
+        "bend_check": summary.get("bend_check"),
         "pose_jumps_remapped": summary.get("pose_jumps_remapped"),
         "keypoints_per_frame_median": float(np.median(list(keypoints.values())))
         if keypoints
@@ -111,6 +86,21 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         "sift_first_octave": summary.get("first_octave"),
         "times": {k: round(v, 3) for k, v in res.times.items()},
     }
+
+
+@dataclass
+class Placed:
+    """The registered frames placed in the scene frame (plus prior-fallback frames)."""
+
+    frames: np.ndarray  # int [M] frame indices into frames.h5, sorted
+    poses: np.ndarray  # float64 [M, 4, 4] c2w, OpenCV axes, scene frame
+    near_far: np.ndarray  # float64 [M, 2]
+    fallback: np.ndarray  # int [F] frames posed from their telemetry prior
+    aabb: np.ndarray  # float64 [2, 3]
+    scene_from_model: np.ndarray  # float64 [4, 4] similarity, scene from COLMAP's frame
+    world_from_scene: np.ndarray | None  # float64 [4, 4] to the priors' world (metres, z up)
+    camera: Camera  # the camera of posed.h5
+    kept_points: np.ndarray  # bool [P] the model's points (point-id order) kept for the bounds
 
 
 def run_sfm(
@@ -138,11 +128,7 @@ def run_sfm(
     except ValueError as err:
         raise InputError(str(err)) from None
     ds = open_dataset(frames_path)
-    gt = None
-    if gt_path is not None:
-        src = ds.source_index if ds.source_index is not None else np.arange(ds.n)
-        times = ds.timestamps if ds.timestamps is not None else np.arange(ds.n, dtype=float)
-        gt = load_ground_truth(gt_path, src, times)
+    gt = _ground_truth(ds, gt_path)
     if ds.n < MIN_FRAMES:
         raise InputError(f"only {ds.n} frame(s); SfM needs at least {MIN_FRAMES}", frames_path)
     plan = plan_camera(ds, opts.camera, camera_from)
@@ -152,11 +138,12 @@ def run_sfm(
             known = plan_camera(ds, "fixed")
     sfm_dir.mkdir(parents=True, exist_ok=True)
     best, attempts = reconstruct_with_retries(ds.images, sfm_dir, opts, plan, known, progress)
-    res = best.result
-    rec = res.reconstruction
+    res, rec = best.result, best.result.reconstruction
+    registered = np.zeros(0, np.int64) if rec is None else model_arrays(rec, res.names)[0]
+    report = build_report(res, ds, registered)
+    report["attempts"] = [a.to_dict() for a in attempts]
+    report["remedy"] = best.remedies[-1] if best.remedies else None
     if rec is None or rec.num_reg_images() < MIN_FRAMES:
-        report = build_report(res, ds, np.zeros(0, np.int64))
-        report["attempts"] = [a.to_dict() for a in attempts]
         report["status"] = "failed"
         report["message"] = (
             f"nothing usable came out: {res.summary.get('stopped') or 'no model with 3+ frames'}; "
@@ -164,12 +151,50 @@ def run_sfm(
         )
         _finish(report, sfm_dir, t0, progress)
         raise InputError(report["message"], frames_path)
-
-    idx, c2w, points, seen = model_arrays(rec, res.names)
-    report = build_report(res, ds, idx)
-    report["attempts"] = [a.to_dict() for a in attempts]
-    report["remedy"] = best.remedies[-1] if best.remedies else None
+    placed = place_scene(ds, rec, res.names, opts, plan, report, gt)
     t = time.perf_counter()
+    with atomic_output(sfm_dir / "model") as tmp:
+        tmp.mkdir()
+        rec.write_binary(tmp)
+    write_points_ply(sfm_dir / "points.ply", rec, placed.scene_from_model, placed.kept_points)
+    report["times"]["write_model"] = round(time.perf_counter() - t, 3)
+    if report["registration_rate"] < opts.min_registration:
+        report["status"] = "failed"
+        report["message"] = (
+            f"only {100 * report['registration_rate']:.1f}% of frames registered, below "
+            f"--min-registration {100 * opts.min_registration:.0f}%; {ADVICE}"
+        )
+        _finish(report, sfm_dir, t0, progress)
+        raise InputError(report["message"], frames_path)
+    write_dataset(
+        posed_path, posed_dataset(ds, placed, opts, plan, camera_from, frames_path, gt_path)
+    )
+    _finish(report, sfm_dir, t0, progress)
+    return report
+
+
+def _ground_truth(ds: Dataset, gt_path: Path | None) -> Any:
+    """The ground truth of ``ds``'s frames from ``gt_path`` (None without one)."""
+    if gt_path is None:
+        return None
+    src = ds.source_index if ds.source_index is not None else np.arange(ds.n)
+    times = ds.timestamps if ds.timestamps is not None else np.arange(ds.n, dtype=float)
+    return load_ground_truth(gt_path, src, times)
+
+
+def place_scene(
+    ds: Dataset,
+    rec: Any,
+    names: list[str],
+    opts: SfmOptions,
+    plan: CameraPlan,
+    report: dict[str, Any],
+    gt: Any,
+) -> Placed:
+    """Align the model to telemetry priors (when present), normalise and bound it, and fill
+    the report's priors, camera, quality, scene and accuracy (with ``gt``) records."""
+    t = time.perf_counter()
+    idx, c2w, points, seen = model_arrays(rec, names)
     priors = read_priors(ds)
     metric, up = np.eye(4), None
     if priors is not None:
@@ -194,9 +219,8 @@ def run_sfm(
         "points_kept": int(norm.inliers.sum()),
         "pose_jumps": pose_jumps(c2w[:, :3, 3], idx),
     }
-    scene_from_model = norm.matrix @ metric
     report["scene"] = {
-        "normalization": scene_from_model.tolist(),
+        "normalization": (norm.matrix @ metric).tolist(),
         "aabb": norm.aabb.tolist(),
         "near_far_median": np.median(nf, 0).tolist(),
     }
@@ -206,61 +230,64 @@ def run_sfm(
         poses = np.concatenate([poses, apply_to_poses(norm.matrix, priors[0][fallback])])
         nf = np.concatenate([nf, near_far(poses[len(idx) :], norm.aabb, [])])
         report["priors"]["fallback_frames"] = fallback.tolist()
-    order = np.argsort(np.concatenate([idx, fallback]), kind="stable")
-    all_idx = np.concatenate([idx, fallback])[order]
-    poses, nf = poses[order], nf[order]
-    src = ds.source_index if ds.source_index is not None else np.arange(ds.n)
-    if gt is not None:
-        # in the frame before normalisation (metres when aligned to priors: scale 1 expected)
+    if gt is not None:  # in the frame before normalisation (metres with priors: scale 1)
+        src = ds.source_index if ds.source_index is not None else np.arange(ds.n)
         report["accuracy"] = accuracy_against(c2w_w, src[idx], gt, src)
+    order = np.argsort(np.concatenate([idx, fallback]), kind="stable")
+    frames = np.concatenate([idx, fallback])[order]
+    return Placed(
+        frames,
+        poses[order],
+        nf[order],
+        fallback,
+        norm.aabb,
+        norm.matrix @ metric,
+        None if up is None else np.linalg.inv(norm.matrix),
+        k,
+        norm.inliers,
+    )
 
-    t = time.perf_counter()
-    with atomic_output(sfm_dir / "model") as tmp:
-        tmp.mkdir()
-        rec.write_binary(tmp)
-    _write_ply(sfm_dir / "points.ply", pts[norm.inliers])
-    report["times"]["write_model"] = round(time.perf_counter() - t, 3)
 
-    if report["registration_rate"] < opts.min_registration:
-        report["status"] = "failed"
-        report["message"] = (
-            f"only {100 * report['registration_rate']:.1f}% of frames registered, below "
-            f"--min-registration {100 * opts.min_registration:.0f}%; {ADVICE}"
-        )
-        _finish(report, sfm_dir, t0, progress)
-        raise InputError(report["message"], frames_path)
-
-    posed = ds.subset(all_idx)
+def posed_dataset(
+    ds: Dataset,
+    placed: Placed,
+    opts: SfmOptions,
+    plan: CameraPlan,
+    camera_from: Path | None,
+    frames_path: Path,
+    gt_path: Path | None,
+) -> Dataset:
+    """The posed.h5 dataset: ``placed``'s frames of ``ds`` with their poses, bounds, camera,
+    per-frame extras and provenance."""
+    posed = ds.subset(placed.frames)
     posed.kind = "posed"
-    posed.poses = poses
-    posed.intrinsics = k
-    posed.aabb = norm.aabb
-    posed.near_far = nf
-    posed.normalization = scene_from_model
+    posed.poses = placed.poses
+    posed.intrinsics = placed.camera
+    posed.aabb = placed.aabb
+    posed.near_far = placed.near_far
+    posed.normalization = placed.scene_from_model
     for name in PER_FRAME_EXTRAS:
         if name in ds.extra and len(ds.extra[name]) == ds.n:
-            posed.extra[name] = np.asarray(ds.extra[name])[all_idx]
-    posed.extra["pose_source"] = np.isin(all_idx, fallback).astype(np.int8)
-    posed.provenance = provenance(
-        "sfm",
-        {**opts.to_dict(), "camera_from": str(camera_from) if camera_from else None},
-        {"frames.h5": sha256_file(frames_path), **({"gt": sha256_file(gt_path)} if gt else {})},
-    )
+            posed.extra[name] = np.asarray(ds.extra[name])[placed.frames]
+    posed.extra["pose_source"] = np.isin(placed.frames, placed.fallback).astype(np.int8)
+    hashes = {"frames.h5": sha256_file(frames_path)}
+    if gt_path is not None:
+        hashes["gt"] = sha256_file(gt_path)
+    given = {**opts.to_dict(), "camera_from": str(camera_from) if camera_from else None}
+    posed.provenance = provenance("sfm", given, hashes)
+    n_reg = len(placed.frames) - len(placed.fallback)
     posed.attrs = {
         **ds.attrs,
-        "sfm_registered": len(idx),
+        "sfm_registered": n_reg,
         "sfm_frames_total": ds.n,
         "sfm_camera": {"mode": plan.mode, "source": plan.source},
         "pixel_centres": "intrinsics in COLMAP's convention: pixel (u, v) centred at (u+.5, v+.5)",
     }
-    if up is not None:
-        posed.attrs["world_from_scene"] = np.linalg.inv(norm.matrix).tolist()
-        posed.attrs["metres_per_scene_unit"] = float(
-            1.0 / np.cbrt(np.linalg.det(norm.matrix[:3, :3]))
-        )
-    write_dataset(posed_path, posed)
-    _finish(report, sfm_dir, t0, progress)
-    return report
+    if placed.world_from_scene is not None:
+        m = placed.world_from_scene
+        posed.attrs["world_from_scene"] = m.tolist()
+        posed.attrs["metres_per_scene_unit"] = float(np.cbrt(np.linalg.det(m[:3, :3])))
+    return posed
 
 
 def _align_to_priors(
@@ -308,15 +335,21 @@ def _camera_report(k: Camera, plan: CameraPlan) -> dict[str, Any]:
     return out
 
 
-def _write_ply(path: Path, points: np.ndarray) -> None:
-    """ASCII PLY of points [P, 3] (float32 x, y, z)."""
-    with atomic_output(path) as tmp, open(tmp, "w") as f:
-        f.write(
-            "ply\nformat ascii 1.0\n"
-            f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\n"
-            "end_header\n"
-        )
-        np.savetxt(f, points, fmt="%.6f")
+def write_points_ply(path: Path, rec: Any, scene_from_model: np.ndarray, kept: np.ndarray) -> None:
+    """The sparse points of ``rec`` kept by the outlier removal (``kept``, bool [P] in point-id
+    order), in the scene frame (``scene_from_model``, 4x4 similarity), with their colours:
+    pycolmap's PLY export of a transformed copy."""
+    import pycolmap
+
+    copy = pycolmap.Reconstruction(rec)
+    for pid, keep in zip(sorted(copy.points3D.keys()), kept, strict=True):
+        if not keep:
+            copy.delete_point3D(pid)
+    scale = float(np.cbrt(np.linalg.det(scene_from_model[:3, :3])))
+    rot = pycolmap.Rotation3d(scene_from_model[:3, :3] / scale)
+    copy.transform(pycolmap.Sim3d(scale, rot, scene_from_model[:3, 3]))
+    with atomic_output(path) as tmp:
+        copy.export_PLY(tmp)
 
 
 def _finish(report: dict[str, Any], sfm_dir: Path, t0: float, progress: bool) -> None:

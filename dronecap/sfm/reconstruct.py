@@ -12,6 +12,7 @@ other models can join it; frames whose pose jumps off the flight path
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import time
 from collections.abc import Callable
@@ -21,8 +22,10 @@ from typing import Any
 
 import numpy as np
 
+from dronecap.sfm.bend import rotation_disagreement
 from dronecap.sfm.camera_plan import CameraPlan
 from dronecap.sfm.colmap_steps import (
+    FALLBACK_MIN_ANGLE,
     MIN_KEYPOINTS,
     extract_finer_when_sparse,
     incremental_map,
@@ -36,6 +39,7 @@ from dronecap.sfm.report import pose_jumps
 TINY_MODEL = 0.5  # our start registered under this fraction of usable frames: also try COLMAP's
 ALT_MODELS = "models_alt"  # folder of the models COLMAP started from its own initial pair
 PAIR_TRIES = 3  # our initial pairs tried in turn (best first) until one starts a non-tiny model
+NARROW_PAIR_MARGIN = 0.8  # a pair under init_min_tri_angle starts with this x its measured angle
 
 
 def image_names(n: int) -> list[str]:
@@ -64,6 +68,7 @@ def colmap_job(
     model sizes, the chosen model's folder ("best", or None) and seconds per phase.
     """
     opts = SfmOptions(**options)
+    deadline = time.perf_counter() + opts.time_cap if opts.time_cap > 0 else None
     root = Path(work)
     db, images = root / "database.db", root / "images"
     times: dict[str, float] = {}
@@ -94,6 +99,7 @@ def colmap_job(
         emit(("registered", k))
 
     t = phase("map")
+    opts = _capped(opts, deadline)
     pairs, info = initial_pairs(db, opts)
     enough = TINY_MODEL * len(usable)
     found, tried = map_from_pairs(db, images, root, opts, refine_camera, on_register, pairs, enough)
@@ -104,7 +110,10 @@ def colmap_job(
     }
     times["map"] = time.perf_counter() - t
     ours = max((v["frames"] for v in found.values()), default=0)
-    if ours < enough or opts.init_trials > 1:  # COLMAP's own start as well
+    if _out_of_time(deadline):
+        out["stopped"] = "time cap reached: the model so far is kept (not complete)"
+    elif ours < enough or opts.init_trials > 1:  # COLMAP's own start as well
+        opts = _capped(opts, deadline)
         t = phase("map (colmap start)")
         alt = incremental_map(db, images, root / ALT_MODELS, opts, refine_camera, on_register)
         times["map_colmap_start"] = time.perf_counter() - t
@@ -116,12 +125,40 @@ def colmap_job(
             " (a camera turning in place or hovering gives no baseline)"
         )
         return out
+    size = _settle(
+        out, found, root, names, len(usable), opts, refine_camera, deadline, phase, on_register
+    )
+    out["bend_check"] = rotation_disagreement(db, Path(out["best"]))
+    if refine_after:
+        t = phase("refine camera", size)
+        out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
+        times["refine_camera"] = time.perf_counter() - t
+    return out
+
+
+def _settle(
+    out: dict[str, Any],
+    found: dict[str, dict[str, float]],
+    root: Path,
+    names: list[str],
+    n_usable: int,
+    opts: SfmOptions,
+    refine_camera: bool,
+    deadline: float | None,
+    phase: Callable[..., float],
+    on_register: Callable[[int], None],
+) -> int:
+    """Choose the model to keep among ``found`` into ``out["best"]``; extend it when frames
+    are missing and re-register its pose jumps (both skipped once the time cap's ``deadline``
+    passed). Returns the frames of the chosen model before the extension."""
+    db, images, times = root / "database.db", root / "images", out["times"]
     # most frames first; among equals, the lower reprojection error (the better basin)
     best = max(found, key=lambda k: (found[k]["frames"], -found[k]["reproj"]))
     out["best"] = best
     out["init_pair"]["kept"] = Path(best).parent.name != ALT_MODELS  # our pair started it
     size = found[best]["frames"]
-    if opts.extend and size < len(usable):
+    if opts.extend and size < n_usable and not _out_of_time(deadline):
+        opts = _capped(opts, deadline)
         t = phase("extend", size)
         ext = incremental_map(
             db, images, root / "extended", opts, refine_camera, on_register, input_path=Path(best)
@@ -132,17 +169,26 @@ def colmap_job(
             if ext[k]["frames"] > size:
                 out["best"] = k
     jumps = jump_frames(Path(out["best"]), names)
-    if jumps:  # poses that fit their points but not the flight: register them again
+    if jumps and not _out_of_time(deadline):  # fits its points, not the flight: again
+        opts = _capped(opts, deadline)
         t = phase("re-register jumps", found[best]["frames"])
         out["best"], out["pose_jumps_remapped"] = remap_jumps(
             db, images, root, Path(out["best"]), jumps, names, opts, refine_camera, on_register
         )
         times["remap_jumps"] = time.perf_counter() - t
-    if refine_after:
-        t = phase("refine camera", found[best]["frames"])
-        out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
-        times["refine_camera"] = time.perf_counter() - t
-    return out
+    return found[best]["frames"]
+
+
+def _capped(opts: SfmOptions, deadline: float | None) -> SfmOptions:
+    """``opts`` with ``time_cap`` set to the seconds left until ``deadline`` (perf_counter)."""
+    if deadline is None:
+        return opts
+    return dataclasses.replace(opts, time_cap=max(1.0, deadline - time.perf_counter()))
+
+
+def _out_of_time(deadline: float | None) -> bool:
+    """Whether a time cap is set and its ``deadline`` (perf_counter) has passed."""
+    return deadline is not None and time.perf_counter() >= deadline
 
 
 def map_from_pairs(
@@ -168,8 +214,13 @@ def map_from_pairs(
     tried = []
     for k, (pair, record) in enumerate(pairs[:PAIR_TRIES]):
         out = work / ("models" if k == 0 else f"models_pair{k + 1}")
+        # COLMAP re-checks the pair's angle: let a narrow pair (a slow flight) through
+        angle = max(FALLBACK_MIN_ANGLE, NARROW_PAIR_MARGIN * record["tri_angle_deg"])
+        pair_opts = dataclasses.replace(
+            opts, init_min_tri_angle=min(opts.init_min_tri_angle, angle)
+        )
         models = incremental_map(
-            database, image_dir, out, opts, refine_camera, on_register, None, pair
+            database, image_dir, out, pair_opts, refine_camera, on_register, None, pair
         )
         found.update(models)
         tried.append(

@@ -122,6 +122,7 @@ def format_report(report: dict[str, Any]) -> str:
             f"  pose jumps: frame(s) {', '.join(map(str, q['pose_jumps']))} lie more than "
             f"{JUMP_FACTOR:g} median steps off the path of their neighbours (check them)"
         )
+    lines.extend(_bend_lines(report.get("bend_check") or {}))
     cam = report.get("camera")
     if cam:
         dist = f" distortion {cam['distortion']}" if cam["distortion"] else ""
@@ -185,3 +186,14 @@ def format_report(report: dict[str, Any]) -> str:
     if t:
         lines.append("  time: " + ", ".join(f"{k} {v:.1f}s" for k, v in t.items()))
     return "\n".join(lines)
+
+
+def _bend_lines(bend: dict[str, Any]) -> list[str]:
+    """The report's line on the bent-model check (:mod:`dronecap.sfm.bend`), if it ran."""
+    if not bend.get("pairs"):
+        return []
+    verdict = "BENT, do not trust these poses" if bend["bent"] else "straight"
+    return [
+        f"  bend check (model vs two-view rotations of {bend['pairs']} consecutive pairs): "
+        f"median {bend['median_deg']:.2f}, p95 {bend['p95_deg']:.2f} deg: {verdict}"
+    ]

@@ -107,8 +107,8 @@ def reconstruct_with_retries(
     for k, (name, change) in enumerate(remedies(best_opts, plan, known, n), start=1):
         if best.registered >= opts.retry_below * n:
             break
-        if time.perf_counter() - t_retry > opts.retry_budget:
-            break
+        if time.perf_counter() - t_retry > opts.retry_budget or opts.time_cap > 0:
+            break  # a time-capped run keeps its model so far: no retries
         o, p = change(best_opts, best_plan)
         if progress:
             print(f"sfm: {best.registered}/{n} frames registered; retrying with {name}")

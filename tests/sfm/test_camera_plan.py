@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from dronecap.camera import Camera
+from dronecap.camera.colmap import camera_from_colmap, colmap_camera
 from dronecap.datasets.format import Dataset, write_dataset
 from dronecap.errors import InputError
-from dronecap.sfm.camera_plan import camera_from_colmap, colmap_camera, plan_camera
+from dronecap.sfm.camera_plan import plan_camera
 
 # an AI-deck-like camera at 160 px: principal point well off the centre row
 AIDECK = Camera(91.0, 91.5, 81.2, 101.0, 160, 160, "OPENCV", (-0.08, 0.01, 0.001, -0.002))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dronecap.sfm.normalize import (
+from dronecap.datasets.normalize import (
     NormalizeSettings,
     apply_to_points,
     apply_to_poses,
@@ -101,7 +101,7 @@ def test_near_far_tightens_to_observed_depths_within_the_box():
 
 
 def test_statistical_inliers_drop_far_points_like_open3d():
-    from dronecap.sfm.normalize import statistical_inliers
+    from dronecap.datasets.normalize import statistical_inliers
 
     rng = np.random.default_rng(3)
     pts = np.concatenate([rng.normal(0, 1, (400, 3)), [[30.0, 0, 0], [0, -25.0, 5]]])

@@ -214,3 +214,26 @@ def test_lego_orbit_through_ingest(lego_dir, tmp_path):
     report = json.loads((tmp_path / "sfm" / "report.json").read_text())
     assert report["accuracy"]["registration_rate"] >= 0.9
     assert report["accuracy"]["ate_percent"] <= 2.0
+
+
+def test_points_ply_has_colours_and_the_model_is_not_bent(lego_run):
+    """points.ply: pycolmap's export of the kept points, in the scene frame, with colours; the
+    bend check (model vs two-view rotations, no ground truth) passes on a straight model."""
+    import open3d as o3d
+
+    tmp, report, _ = lego_run
+    cloud = o3d.io.read_point_cloud(str(tmp / "sfm" / "points.ply"))
+    assert len(cloud.points) == report["quality"]["points_kept"]
+    assert cloud.has_colors() and np.asarray(cloud.colors).max() > 0.1
+    lo, hi = open_dataset(tmp / "posed.h5", kinds=("posed",)).aabb
+    inside = np.all((np.asarray(cloud.points) > lo) & (np.asarray(cloud.points) < hi), axis=1)
+    assert inside.mean() > 0.95
+    bend = report["bend_check"]
+    assert bend["pairs"] >= 20 and not bend["bent"]
+    assert bend["median_deg"] < 1.0
+
+
+def test_video_options_are_checked():
+    for bad in ({"ba_global_ratio": 1.0}, {"ba_refinements": 0}, {"time_cap": -1.0}):
+        with pytest.raises(ValueError):
+            SfmOptions(**bad).validate()
