@@ -34,7 +34,7 @@ from .losses import huber_sum, psnr_from_mse
 from .march_kernel import march_function
 from .marching import Samples, take_rays
 from .photometric import Photometric, normalized_radius
-from .rays import camera_rays, ray_aabb
+from .rays import frame_cameras, frame_rays, ray_aabb
 from .render import Volume, render_rays, render_view
 from .resolve import Resolved, resolve, training_frames
 from .volrend import render_packed
@@ -141,7 +141,7 @@ class Trainer:
             raise InputError(
                 f"dataset has {train.channels} channels, the model {self.scene.channels}"
             )
-        if train.poses is None or train.intrinsics is None:
+        if train.poses is None or (train.intrinsics is None and train.cameras is None):
             raise InputError("dataset has no poses/intrinsics: run `dronecap sfm` first")
         idx = training_frames(train)
         if idx.size == 0:
@@ -151,7 +151,8 @@ class Trainer:
             None if train.alpha is None else torch.as_tensor(train.alpha[idx], device=self.device)
         )
         self.poses = torch.as_tensor(train.poses[idx], dtype=torch.float32, device=self.device)
-        self.camera = train.intrinsics
+        self.cameras, self.camera_index = frame_cameras(train, idx, self.device)
+        self.camera = self.cameras[0]
         if self.photometric.resize_frames(idx.size):  # other frames: their gains start at 1
             group = self.optimizer.param_groups[PHOTOMETRIC_GROUP]
             for p in group["params"]:
@@ -180,7 +181,7 @@ class Trainer:
         which = imgs[torch.randint(imgs.numel(), (n_rays,), generator=g, device=dev)]
         u = torch.randint(w, (n_rays,), generator=g, device=dev)
         v = torch.randint(h, (n_rays,), generator=g, device=dev)
-        origins, dirs = camera_rays(self.poses[which], self.camera, u, v)
+        origins, dirs = frame_rays(self.poses[which], self.cameras, self.camera_index[which], u, v)
         rgb = self.images[which, v, u].float() / 255.0
         if self.alpha is not None:
             a = (self.alpha[which, v, u].float() / 255.0).unsqueeze(-1)
