@@ -9,10 +9,14 @@ frame records its drone (``/drone``: the source's position) and its index in tha
 calibration is known. Frame names are prefixed by the drone's name (``drone_0:frame_000012``),
 so names stay unique across drones. The per-decoded-frame tables of every drone are stored one
 after the other with ``extra/decoded_drone`` naming each row's drone.
+
+:func:`replay` re-runs one flight's selection on the tables a frames.h5 stores (``dronecap ingest
+--replay``), without decoding.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -23,10 +27,12 @@ from dronecap.capture.ingest import (
     TELEMETRY_NAMES,
     IngestParams,
     IngestResult,
+    extra_to_tables,
     params_record,
     tables_to_extra,
 )
-from dronecap.datasets.format import Dataset, provenance
+from dronecap.capture.selection import SelectionParams, select_frames
+from dronecap.datasets.format import Dataset, open_dataset, provenance
 from dronecap.errors import InputError
 from dronecap.files import sha256_file
 
@@ -176,3 +182,60 @@ def _swarm_summary(results: list[IngestResult], names: list[str]) -> dict[str, o
         "size": per[0]["size"],
         "warnings": [f"{p['drone']}: {w}" for p in per for w in p["warnings"]],  # type: ignore[attr-defined]
     }
+
+
+def replay(
+    path: Path, changes: dict[str, object], subset: bool
+) -> tuple[list[str], Dataset | None]:
+    """Re-run the selection of the one-flight frames file ``path`` with ``changes`` to its
+    stored selection parameters, on its stored tables (no decoding).
+
+    Returns:
+        (the lines to print: what is kept and dropped, and a note when these options would
+        keep frames that were not stored; with ``subset``, the re-selected frames as a
+        Dataset, else None).
+
+    Raises:
+        InputError: not a frames file, one of several drones, or no stored tables.
+    """
+    ds = open_dataset(path, kinds=("frames",))
+    if len(ds.drone_names or []) > 1:
+        raise InputError("holds several drones: --replay reads one flight's file", path)
+    try:
+        tables = extra_to_tables(ds.extra)
+    except InputError as err:
+        raise InputError(str(err), path) from None
+    stored = ds.provenance.get("params", {}).get("selection", {})
+    known = {f.name for f in dataclasses.fields(SelectionParams)}
+    params = SelectionParams(**{k: v for k, v in stored.items() if k in known}).replace(**changes)
+    old_keep = np.asarray(ds.extra["keep"], bool)
+    free = select_frames(tables, params)  # what a re-ingest with these options would keep
+    sel = select_frames(tables, params, available=old_keep)  # among the stored images
+    counts = sel.counts()
+    dropped = ", ".join(f"{k} {v}" for k, v in counts.items() if not k.startswith("kept"))
+    lines = [
+        f"replay of {path}: {len(sel.keep)} decoded frames, kept {int(sel.keep.sum())} of the "
+        f"{int(old_keep.sum())} stored; dropped: {dropped or 'none'}"
+        f"; min_motion {sel.min_motion:.2f} px"
+    ]
+    extra = int((free.keep & ~old_keep).sum())
+    if extra:
+        lines.append(
+            f"note: {extra} frames that these options would keep were not stored; re-run "
+            "`dronecap ingest SOURCE` with them to get those images"
+        )
+    if not subset:
+        return lines, None
+    stored_pos = np.flatnonzero(old_keep)  # decoded position of each stored image
+    sub = ds.subset(np.flatnonzero(np.isin(stored_pos, np.flatnonzero(sel.keep))))
+    sub.extra = tables_to_extra(tables, sel)
+    sub.attrs = {
+        **ds.attrs,
+        "kept": int(sel.keep.sum()),
+        "dropped": {k: v for k, v in counts.items() if not k.startswith("kept")},
+        "min_motion_used": sel.min_motion,
+        "replayed_from": str(path),
+    }
+    record = {**ds.provenance.get("params", {}), "selection": dataclasses.asdict(params)}
+    sub.provenance = {**ds.provenance, "params": record}
+    return lines, sub

@@ -14,7 +14,6 @@ re-selected frames when all of them are stored.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import sys
@@ -214,55 +213,12 @@ def _sidecar_calibration(source: Path) -> str | None:
 
 
 def _replay(args: Settings, changes: dict[str, object]) -> int:
-    import numpy as np
+    from dronecap.capture.frames_file import replay
+    from dronecap.datasets import write_dataset
 
-    from dronecap.capture.ingest import extra_to_tables, tables_to_extra
-    from dronecap.capture.selection import SelectionParams, select_frames
-    from dronecap.datasets import open_dataset, write_dataset
-    from dronecap.errors import InputError
-
-    path = Path(args.replay)
-    ds = open_dataset(path, kinds=("frames",))
-    if len(ds.drone_names or []) > 1:
-        raise InputError("holds several drones: --replay reads one flight's file", path)
-    try:
-        tables = extra_to_tables(ds.extra)
-    except InputError as err:
-        raise InputError(str(err), path) from None
-    stored = ds.provenance.get("params", {}).get("selection", {})
-    known = {f.name for f in dataclasses.fields(SelectionParams)}
-    params = SelectionParams(**{k: v for k, v in stored.items() if k in known}).replace(**changes)
-    old_keep = np.asarray(ds.extra["keep"], bool)
-    free = select_frames(tables, params)  # what a re-ingest with these options would keep
-    sel = select_frames(tables, params, available=old_keep)  # among the stored images
-    n = len(sel.keep)
-    counts = sel.counts()
-    dropped = ", ".join(f"{k} {v}" for k, v in counts.items() if not k.startswith("kept"))
-    print(
-        f"replay of {path}: {n} decoded frames, kept {int(sel.keep.sum())} of the "
-        f"{int(old_keep.sum())} stored; dropped: {dropped or 'none'}"
-        f"; min_motion {sel.min_motion:.2f} px"
-    )
-    extra = int((free.keep & ~old_keep).sum())
-    if extra:
-        print(
-            f"note: {extra} frames that these options would keep were not stored; re-run "
-            "`dronecap ingest SOURCE` with them to get those images"
-        )
-    if args.output is None:
-        return 0
-    stored_pos = np.flatnonzero(old_keep)  # decoded position of each stored image
-    sub = ds.subset(np.flatnonzero(np.isin(stored_pos, np.flatnonzero(sel.keep))))
-    sub.extra = tables_to_extra(tables, sel)
-    sub.attrs = {
-        **ds.attrs,
-        "kept": int(sel.keep.sum()),
-        "dropped": {k: v for k, v in counts.items() if not k.startswith("kept")},
-        "min_motion_used": sel.min_motion,
-        "replayed_from": str(path),
-    }
-    record = {**ds.provenance.get("params", {}), "selection": dataclasses.asdict(params)}
-    sub.provenance = {**ds.provenance, "params": record}
-    write_dataset(args.output, sub)
-    print(f"wrote {sub.n} frames -> {args.output}")
+    lines, sub = replay(Path(args.replay), changes, args.output is not None)
+    print("\n".join(lines))
+    if sub is not None:
+        write_dataset(args.output, sub)
+        print(f"wrote {sub.n} frames -> {args.output}")
     return 0
