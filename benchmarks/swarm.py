@@ -36,7 +36,10 @@ def stage(argv: list[str]) -> tuple[float, str]:
     err = io.StringIO()
     t0 = time.perf_counter()
     with contextlib.redirect_stderr(err):
-        code = main(["-q", *argv])
+        try:
+            code = main(["-q", *argv])
+        except SystemExit as stop:  # argparse's usage errors
+            code = stop.code if isinstance(stop.code, int) else 2
     lines = [x for x in err.getvalue().splitlines() if "warning" not in x]
     return time.perf_counter() - t0, "" if code == 0 else (lines[-1] if lines else f"exit {code}")
 
@@ -90,7 +93,7 @@ def run_one(n: int, frames: int, sensor: str, work: Path) -> dict[str, object]:
         "simulate": ["simulate", "--drones", str(n), "--frames", str(frames), "--sensor", sensor,
                      "-o", str(swarm)],
         "ingest": ["ingest", str(swarm), "-o", str(fh5)],
-        "sfm": ["sfm", str(fh5), "--workdir", str(sfm_dir)],
+        "sfm": ["sfm", "--frames", str(fh5), "--workdir", str(sfm_dir)],
     }  # fmt: skip
     for name, argv in steps.items():
         if name == "simulate" and (swarm / "swarm.json").exists():
