@@ -133,7 +133,9 @@ def frames_dataset(
         drone_names=names,
     )
     cams = [r.camera for r in results]
-    if all(c is not None for c in cams):
+    if single:  # today's layout: the one camera as `intrinsics` (stages that refine it set it)
+        ds.intrinsics = cams[0]
+    elif all(c is not None for c in cams):
         ds.set_cameras(cams, drone)  # type: ignore[arg-type]
     elif any(c is not None for c in cams):
         unknown = [n for n, c in zip(names, cams, strict=True) if c is None]
