@@ -176,7 +176,7 @@ def _check_shards(files: list[Path]) -> None:
 
     for k, path in enumerate(files):
         ds = open_dataset(path, kinds=("shard", "dataset"))
-        if ds.poses is None or ds.intrinsics is None:
+        if ds.poses is None or (ds.intrinsics is None and ds.cameras is None):
             raise InputError("has no camera poses or intrinsics to train on", path)
         if not len(ds.indices("train")):
             raise InputError("holds no train views", path)

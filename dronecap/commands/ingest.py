@@ -1,5 +1,9 @@
 """``dronecap ingest``: flight video or drone capture folder -> 160x160 gray selected frames.h5.
 
+Several sources (``dronecap ingest A.mp4 B.mp4``) or a swarm folder (one video or capture
+folder per drone, e.g. ``dronecap simulate --drones N``'s) give one file with a drone and a
+camera per frame (:mod:`dronecap.capture.frames_file`).
+
 ``dronecap ingest flight.mp4`` (or a folder of frames, e.g. a NanoCockpit or PULP-Dronet capture
 with its telemetry CSV) decodes, checks for stream defects, scores, tracks features and selects,
 and writes ``frames.h5`` in the workspace (with pose priors when the telemetry has poses).
@@ -10,7 +14,6 @@ re-selected frames when all of them are stored.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import sys
@@ -27,7 +30,12 @@ from dronecap.stage import flatten, setting
 class Settings(Base):
     """Options of ``dronecap ingest`` (the selection's are SelectionParams' fields)."""
 
-    source: str | None = setting(None, positional=True, help="video file or folder of images")
+    source: list[str] = setting(
+        factory=list,
+        positional=True,
+        help="video file or folder of images; several (one per drone, in order) or a swarm "
+        "folder (one video or capture folder per drone) for a swarm",
+    )
     output: str | None = setting(
         None, short="-o", help="output frames file (default: WORKDIR/frames.h5)"
     )
@@ -36,11 +44,13 @@ class Settings(Base):
         "center",
         help="'center' (crop to the output aspect, default), 'stretch', or 'X,Y,W,H' in source px",
     )
-    intrinsics: str | None = setting(
-        None,
+    intrinsics: list[str] = setting(
+        factory=list,
+        repeat=True,
         help="source camera: 'fx,fy,cx,cy' (source pixels), a `dronecap calibrate` JSON, an "
         "OpenCV YAML/XML calibration or the simulator's flight.json (distortion is kept); "
-        "default: SOURCE_STEM.json beside the video if it has intrinsics; 'none' to ignore it",
+        "default: SOURCE_STEM.json beside the video if it has intrinsics; 'none' to ignore it. "
+        "Several drones: once for all, once per drone in order, or a folder of DRONE.json",
     )
     fps: float = setting(30.0, help="frame rate of an image folder")
     allow_truncated: bool = setting(
@@ -102,23 +112,19 @@ def run(args: Settings) -> int:
 
 def _ingest(args: Settings, selection: object) -> int:
     from dronecap import workspace
+    from dronecap.capture.frames_file import drone_sources, frames_dataset
     from dronecap.capture.framing import parse_numbers, parse_size
-    from dronecap.capture.ingest import IngestParams, ingest, params_record, tables_to_extra
+    from dronecap.capture.ingest import IngestParams, ingest
     from dronecap.capture.telemetry import parse_columns
-    from dronecap.datasets import Dataset, provenance, write_dataset
+    from dronecap.datasets import write_dataset
     from dronecap.errors import InputError
-    from dronecap.files import sha256_file
 
-    source = Path(args.source)
+    sources = drone_sources(args.source)
     try:
         size = parse_size(args.size)
     except ValueError as err:
         raise InputError(f"--size: {err}") from None
-    intrinsics = args.intrinsics
-    if intrinsics is None:
-        intrinsics = _sidecar_calibration(source)
-    elif intrinsics.lower() == "none":
-        intrinsics = None
+    calibrations = _calibrations(args.intrinsics, sources)
     try:
         parse_columns(args.columns)
     except ValueError as err:
@@ -131,41 +137,66 @@ def _ingest(args: Settings, selection: object) -> int:
             raise InputError(str(err)) from None
         if not all(math.isfinite(v) and abs(v) < 10 for v in offset):
             raise InputError(f"--camera-offset: metres within 10 m, got {args.camera_offset}")
-    params = IngestParams(
-        size=size,
-        crop=args.crop,
-        fps=args.fps,
-        intrinsics=intrinsics,
-        allow_truncated=args.allow_truncated,
-        skip_unreadable=args.skip_unreadable,
-        telemetry=args.telemetry,
-        columns=args.columns,
-        camera_offset=offset,
-        bayer=args.bayer.lower() if args.bayer in ("AUTO", "NONE") else args.bayer,
-        selection=selection,  # type: ignore[arg-type]
-    )
+    if args.telemetry is not None and len(sources) > 1:
+        raise InputError(
+            "--telemetry names one CSV: with several drones each capture folder's own is used"
+        )
+    params = [
+        IngestParams(
+            size=size,
+            crop=args.crop,
+            fps=args.fps,
+            intrinsics=calibration,
+            allow_truncated=args.allow_truncated,
+            skip_unreadable=args.skip_unreadable,
+            telemetry=args.telemetry,
+            columns=args.columns,
+            camera_offset=offset,
+            bayer=args.bayer.lower() if args.bayer in ("AUTO", "NONE") else args.bayer,
+            selection=selection,  # type: ignore[arg-type]
+        )
+        for calibration in calibrations
+    ]
     out = workspace.resolve(args.workdir, args.output, workspace.FRAMES)
-    result = ingest(source, params)
-    kept = result.kept_index
-    cam = result.camera
-    ds = Dataset(
-        kind="frames",
-        images=result.images,
-        names=result.names,
-        source_index=result.tables["source_index"][kept],
-        timestamps=result.tables["timestamp"][kept],
-        intrinsics=cam,
-        extra=tables_to_extra(result.tables, result.selection),
-        attrs=result.summary(),
-        provenance=provenance("ingest", params_record(params), {str(source): sha256_file(source)}),
-    )
-    write_dataset(out, ds)
-    for w in result.warnings:
-        print(f"dronecap ingest: warning: {w}", file=sys.stderr)
-    if intrinsics is not None and args.intrinsics is None:
-        print(f"intrinsics from {intrinsics}")
-    print(f"{result.summary_line()} -> {out}")
+    results = [ingest(s, p) for s, p in zip(sources, params, strict=True)]
+    write_dataset(out, frames_dataset(results, sources, params))
+    several = len(sources) > 1
+    for source, p, result in zip(sources, params, results, strict=True):
+        label = f"{source}: " if several else ""
+        for w in result.warnings:
+            print(f"dronecap ingest: warning: {label}{w}", file=sys.stderr)
+        if p.intrinsics is not None and not args.intrinsics:
+            print(f"{label}intrinsics from {p.intrinsics}")
+        print(f"{label}{result.summary_line()}" + ("" if several else f" -> {out}"))
+    if several:
+        print(f"{len(sources)} drones, {sum(len(r.images) for r in results)} frames -> {out}")
     return 0
+
+
+def _calibrations(given: list[str], sources: list[Path]) -> list[str | None]:
+    """Each drone's calibration: none given, its sidecar (``flight.json``); one, for all (a
+    folder: its DRONE.json/.yaml/.xml); one per drone, in order. 'none' ignores the sidecar."""
+    from dronecap.capture.frames_file import drone_name
+    from dronecap.errors import InputError
+
+    if not given:
+        return [_sidecar_calibration(s) for s in sources]
+    if len(given) == 1 and Path(given[0]).is_dir():
+        folder, out = Path(given[0]), []
+        for s in sources:
+            found = [folder / f"{drone_name(s)}{x}" for x in (".json", ".yaml", ".yml", ".xml")]
+            found = [p for p in found if p.is_file()]
+            if not found:
+                raise InputError(f"holds no calibration {drone_name(s)}.json for drone {s}", folder)
+            out.append(str(found[0]))
+        return out
+    if len(given) not in (1, len(sources)):
+        raise InputError(
+            f"--intrinsics given {len(given)} times for {len(sources)} drones: give it once"
+            " (for all) or once per drone, in the sources' order"
+        )
+    each = given * len(sources) if len(given) == 1 else given
+    return [None if g.lower() == "none" else g for g in each]
 
 
 def _sidecar_calibration(source: Path) -> str | None:
@@ -182,53 +213,12 @@ def _sidecar_calibration(source: Path) -> str | None:
 
 
 def _replay(args: Settings, changes: dict[str, object]) -> int:
-    import numpy as np
+    from dronecap.capture.frames_file import replay
+    from dronecap.datasets import write_dataset
 
-    from dronecap.capture.ingest import extra_to_tables, tables_to_extra
-    from dronecap.capture.selection import SelectionParams, select_frames
-    from dronecap.datasets import open_dataset, write_dataset
-    from dronecap.errors import InputError
-
-    path = Path(args.replay)
-    ds = open_dataset(path, kinds=("frames",))
-    try:
-        tables = extra_to_tables(ds.extra)
-    except InputError as err:
-        raise InputError(str(err), path) from None
-    stored = ds.provenance.get("params", {}).get("selection", {})
-    known = {f.name for f in dataclasses.fields(SelectionParams)}
-    params = SelectionParams(**{k: v for k, v in stored.items() if k in known}).replace(**changes)
-    old_keep = np.asarray(ds.extra["keep"], bool)
-    free = select_frames(tables, params)  # what a re-ingest with these options would keep
-    sel = select_frames(tables, params, available=old_keep)  # among the stored images
-    n = len(sel.keep)
-    counts = sel.counts()
-    dropped = ", ".join(f"{k} {v}" for k, v in counts.items() if not k.startswith("kept"))
-    print(
-        f"replay of {path}: {n} decoded frames, kept {int(sel.keep.sum())} of the "
-        f"{int(old_keep.sum())} stored; dropped: {dropped or 'none'}"
-        f"; min_motion {sel.min_motion:.2f} px"
-    )
-    extra = int((free.keep & ~old_keep).sum())
-    if extra:
-        print(
-            f"note: {extra} frames that these options would keep were not stored; re-run "
-            "`dronecap ingest SOURCE` with them to get those images"
-        )
-    if args.output is None:
-        return 0
-    stored_pos = np.flatnonzero(old_keep)  # decoded position of each stored image
-    sub = ds.subset(np.flatnonzero(np.isin(stored_pos, np.flatnonzero(sel.keep))))
-    sub.extra = tables_to_extra(tables, sel)
-    sub.attrs = {
-        **ds.attrs,
-        "kept": int(sel.keep.sum()),
-        "dropped": {k: v for k, v in counts.items() if not k.startswith("kept")},
-        "min_motion_used": sel.min_motion,
-        "replayed_from": str(path),
-    }
-    record = {**ds.provenance.get("params", {}), "selection": dataclasses.asdict(params)}
-    sub.provenance = {**ds.provenance, "params": record}
-    write_dataset(args.output, sub)
-    print(f"wrote {sub.n} frames -> {args.output}")
+    lines, sub = replay(Path(args.replay), changes, args.output is not None)
+    print("\n".join(lines))
+    if sub is not None:
+        write_dataset(args.output, sub)
+        print(f"wrote {sub.n} frames -> {args.output}")
     return 0

@@ -47,6 +47,7 @@ def run(s: Settings) -> int:
     if s.orbit is not None:
         poses = orbit_poses(ds.poses, trainer.scene.aabb.mean(0), s.orbit)
         names = [f"orbit_{i:03d}" for i in range(s.orbit)]
+        cams = [ds.camera_of(0)] * s.orbit
     else:
         idx = test_views(ds)
         if idx.size == 0:
@@ -54,10 +55,11 @@ def run(s: Settings) -> int:
             raise InputError("dataset has no test or val views; use --orbit N", where)
         poses = ds.poses[idx]
         names = [f"test_{i:03d}" for i in idx]
+        cams = [ds.camera_of(int(i)) for i in idx]
     frames = []
-    views = list(zip(poses, names, strict=True))
-    for pose, name in progress_bar(views, desc="render", unit="view", disable=s.no_progress):
-        img = trainer.render(pose, ds.intrinsics)
+    views = list(zip(poses, names, cams, strict=True))
+    for pose, name, cam in progress_bar(views, desc="render", unit="view", disable=s.no_progress):
+        img = trainer.render(pose, cam)
         write_png(out / f"{name}.png", img)
         frames.append(img)
     if s.mp4:

@@ -1,4 +1,4 @@
-"""`dronecap shard`: IID or viewpoint-sector shards of a dataset, one file per drone -> shards/."""
+"""`dronecap shard`: IID, viewpoint-sector or per-drone shards of a dataset -> shards/."""
 
 from __future__ import annotations
 
@@ -16,9 +16,13 @@ class Settings(Base):
         None, positional=True, help="dataset to shard (default: WORKDIR/dataset.h5)"
     )
     output: str | None = setting(None, short="-o", help="folder to write (default: WORKDIR/shards)")
-    clients: int = setting(4, minimum=1, help="number of drones K (default 4)")
+    clients: int = setting(
+        4, minimum=1, help="number of drones K (default 4; --scheme drone: one per drone)"
+    )
     scheme: str = setting(
-        "sector", help="iid (seeded shuffle) or sector (contiguous viewpoint sectors; default)"
+        "sector",
+        help="iid (seeded shuffle), sector (contiguous viewpoint sectors; default) or drone"
+        " (each drone's own train frames, for a swarm's dataset)",
     )
     seed: int = setting(0, minimum=0, help="seed of the iid shuffle, >= 0 (default 0)")
 
@@ -43,5 +47,6 @@ def run(s: Settings) -> int:
         if "azimuth_deg" in shard:
             a, b = shard["azimuth_deg"]
             sector = f", azimuth {a:.0f}..{b:.0f} deg ({shard['span_deg']:.0f} deg)"
-        print(f"  {shard['file']}: {shard['n_train']} train views{sector}")
+        drone = f" of drone {shard['drone']}" if "drone" in shard else ""
+        print(f"  {shard['file']}: {shard['n_train']} train views{drone}{sector}")
     return 0

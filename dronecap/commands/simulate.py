@@ -41,7 +41,15 @@ class Settings(Base):
         help="video file (default: WORKDIR/flight.mp4; ground truth beside it as .json) or, "
         "for a folder format, the capture folder (default: WORKDIR/capture; flight.json inside)",
     )
-    frames: int = setting(600, help="source frames at 30 Hz")
+    frames: int = setting(600, help="source frames at 30 Hz (per drone)")
+    drones: int = setting(
+        1,
+        minimum=1,
+        maximum=16,
+        help="a swarm of N drones, each flying its own overlapping part of the scene with its own"
+        " camera and onboard state, one entry per drone in the output folder (default: WORKDIR/"
+        "swarm; swarm.json lists them)",
+    )
     seed: int = setting(0, minimum=0, help="random seed (>= 0)")
     codec: str = setting(
         "ffv1",
@@ -196,6 +204,8 @@ def run(args: Settings) -> int:
     if args.frames < 2 or args.frames > 100_000:
         raise InputError(f"--frames must be 2-100000, got {args.frames}")
     capture = capture_from_settings(args)
+    if args.drones > 1:
+        return _run_swarm(args, capture)
     default = "flight.mp4" if args.format == "mp4" else "capture"
     out = workspace.resolve(args.workdir, args.output, default)
     t0 = time.perf_counter()
@@ -213,5 +223,23 @@ def run(args: Settings) -> int:
         f"rendered {args.frames} frames of '{args.scene}' (seed {args.seed}, sensor "
         f"{capture.sensor_name}) in {dt:.1f} s ({args.frames / dt:.0f} frames/s) -> {path}, "
         f"ground truth {gt}"
+    )
+    return 0
+
+
+def _run_swarm(args: Settings, capture: Any) -> int:
+    """``--drones N`` (N >= 2): render the swarm's flights into one folder."""
+    from dronecap import workspace
+    from dronecap.simulator.swarm import simulate_swarm
+
+    out = workspace.resolve(args.workdir, args.output, "swarm")
+    t0 = time.perf_counter()
+    simulate_swarm(
+        args.scene, out, args.drones, args.frames, args.seed, args.codec, capture, args.format
+    )
+    print(
+        f"rendered {args.drones} drones x {args.frames} frames of '{args.scene}' (seed "
+        f"{args.seed}, sensor {capture.sensor_name}) in {time.perf_counter() - t0:.1f} s -> {out}"
+        f" (one {'video' if args.format == 'mp4' else 'folder'} per drone, swarm.json)"
     )
     return 0

@@ -3,7 +3,10 @@
 :func:`problem` returns the first thing wrong with a dataset as "<field>: <problem>": schema,
 dtypes and shapes, non-finite values, non-rigid camera poses (orthonormal within
 :data:`ROTATION_TOL`, det +1, last row [0, 0, 0, 1]), the camera (``Camera.problems``), an AABB
-that is finite with max > min and seen by some camera, 0 <= near < far, a background in [0, 1].
+that is finite with max > min and seen by some camera, 0 <= near < far, a background in [0, 1],
+the camera table (every camera valid and sized like the images, every frame's index in range,
+``intrinsics`` equal to the one camera or None when there are several) and the drones (>= 0,
+a name for each when names are given).
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ def problem(ds: Dataset) -> str | None:
         "timestamps": (ds.timestamps, (n,), "fiu"),
         "split": (ds.split, (n,), "iu"),
         "near_far": (ds.near_far, (n, 2), "fiu"),
+        "camera_index": (ds.camera_index, (n,), "iu"),
+        "drone": (ds.drone, (n,), "iu"),
         **{f"shards/{k}": (v, (n,), "iu") for k, v in ds.shards.items()},
     }
     for name, (arr, shape, kinds) in per_frame.items():
@@ -70,14 +75,12 @@ def problem(ds: Dataset) -> str | None:
         if not ((nf[:, 0] >= 0).all() and (nf[:, 1] > nf[:, 0]).all()):
             i = int(np.flatnonzero(~((nf[:, 0] >= 0) & (nf[:, 1] > nf[:, 0])))[0])
             return f"near_far: must satisfy 0 <= near < far, frame {i} has {nf[i].tolist()}"
-    if ds.intrinsics is not None:
-        k = ds.intrinsics
-        if not isinstance(k, Camera):
-            return f"intrinsics: must be a Camera, found {type(k).__name__}"
-        for problem in k.problems():
-            return f"intrinsics: {problem}"
-        if (k.width, k.height) != (w, h):
-            return f"intrinsics: are for {k.width}x{k.height} but images are {w}x{h}"
+    if ds.intrinsics is not None and (bad := _camera_problem(ds.intrinsics, w, h)) is not None:
+        return f"intrinsics: {bad}"
+    if (bad := _camera_table_problem(ds)) is not None:
+        return bad
+    if (bad := _drone_problem(ds)) is not None:
+        return bad
     if ds.aabb is not None and (bad := _aabb_problem(ds)) is not None:
         return f"aabb: {bad}"
     if ds.normalization is not None:
@@ -93,6 +96,58 @@ def problem(ds: Dataset) -> str | None:
     for name in ("provenance", "attrs"):
         if not isinstance(getattr(ds, name), dict):
             return f"{name}: must be a JSON object, found {type(getattr(ds, name)).__name__}"
+    return None
+
+
+def _camera_problem(k: object, w: int, h: int) -> str | None:
+    """What is wrong with camera ``k`` for w x h images (None when it is usable)."""
+    if not isinstance(k, Camera):
+        return f"must be a Camera, found {type(k).__name__}"
+    for problem in k.problems():
+        return problem
+    if (k.width, k.height) != (w, h):
+        return f"are for {k.width}x{k.height} but images are {w}x{h}"
+    return None
+
+
+def _camera_table_problem(ds: Dataset) -> str | None:
+    """The camera table, the per-frame index into it and its agreement with ``intrinsics``."""
+    cams, index = ds.cameras, ds.camera_index
+    if cams is None:
+        return "camera_index: given without a cameras table" if index is not None else None
+    if not isinstance(cams, list) or not cams:
+        return f"cameras: must be a non-empty list of cameras, found {describe(cams)}"
+    h, w = ds.images.shape[1:3]
+    for i, k in enumerate(cams):
+        if (bad := _camera_problem(k, w, h)) is not None:
+            return f"cameras[{i}]: {bad}"
+    if index is None:
+        if len(cams) > 1:
+            return f"camera_index: missing, needed to choose among {len(cams)} cameras"
+    elif len(index) and (index.min() < 0 or index.max() >= len(cams)):
+        bad = int(index.min() if index.min() < 0 else index.max())
+        return f"camera_index: {bad} is not a camera (the table has {len(cams)})"
+    expected = cams[0] if len(cams) == 1 else None
+    if ds.intrinsics != expected:
+        if expected is None:
+            return f"intrinsics: must be None when there are {len(cams)} cameras"
+        return "intrinsics: must equal cameras[0] when there is one camera"
+    return None
+
+
+def _drone_problem(ds: Dataset) -> str | None:
+    """Drone numbers >= 0, and a name for every drone when names are given."""
+    names = ds.drone_names
+    if names is not None and not (
+        isinstance(names, list) and all(isinstance(s, str) for s in names)
+    ):
+        return "drone_names: must be a list of strings"
+    if ds.drone is None or not len(ds.drone):
+        return None
+    if ds.drone.min() < 0:
+        return f"drone: numbers must be >= 0, found {int(ds.drone.min())}"
+    if names is not None and ds.drone.max() >= len(names):
+        return f"drone: drone {int(ds.drone.max())} has no name (drone_names has {len(names)})"
     return None
 
 
@@ -113,18 +168,21 @@ def _box_seen(box: np.ndarray, poses: np.ndarray, ds: Dataset) -> bool:
     pts = box[0] + (box[1] - box[0]) * np.stack(np.meshgrid(t, t, t), -1).reshape(-1, 3)
     cam = np.einsum("nji,nkj->nki", poses[:, :3, :3], pts[None] - poses[:, None, :3, 3])
     inside = ((poses[:, :3, 3] >= box[0]) & (poses[:, :3, 3] <= box[1])).all(1)
-    k = ds.intrinsics
-    if k is None:
+    if ds.intrinsics is None and ds.cameras is None:
         return bool(inside.any() or (cam[..., 2] > 0).any())
+    ks = ds.frame_cameras()
+    fx, fy, cx, cy = (
+        np.array([getattr(k, a) for k in ks])[:, None] for a in ("fx", "fy", "cx", "cy")
+    )
+    w, h = ks[0].width, ks[0].height
     z = np.where(cam[..., 2] > 0, cam[..., 2], np.inf)
-    u, v = k.fx * cam[..., 0] / z + k.cx, k.fy * cam[..., 1] / z + k.cy
-    in_image = (cam[..., 2] > 0) & (u >= 0) & (u <= k.width) & (v >= 0) & (v <= k.height)
+    u, v = fx * cam[..., 0] / z + cx, fy * cam[..., 1] / z + cy
+    in_image = (cam[..., 2] > 0) & (u >= 0) & (u <= w) & (v >= 0) & (v <= h)
     if inside.any() or in_image.any():
         return True
-    uv = np.array([[k.width / 2, k.height / 2], [0, 0], [k.width, 0], [0, k.height]])
-    uv = np.concatenate([uv, [[k.width, k.height]]])
-    d_cam = np.stack([(uv[:, 0] - k.cx) / k.fx, (uv[:, 1] - k.cy) / k.fy, np.ones(5)], 1)
-    d = np.einsum("nij,kj->nki", poses[:, :3, :3], d_cam)  # [N, 5, 3] world directions
+    uv = np.array([[w / 2, h / 2], [0, 0], [w, 0], [0, h], [w, h]])  # [5, 2]
+    d_cam = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones((len(ks), 5))], -1)
+    d = np.einsum("nij,nkj->nki", poses[:, :3, :3], d_cam)  # [N, 5, 3] world directions
     o = poses[:, None, :3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         t0, t1 = (box[0] - o) / d, (box[1] - o) / d  # 0/0: the ray runs in a slab's face

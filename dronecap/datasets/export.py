@@ -64,6 +64,15 @@ class ExportResult:
     notes: list[str] = field(default_factory=list)  # what could not be written, and why
 
 
+def frame_camera_keys(ds: Dataset) -> list[dict[str, Any]]:
+    """Per-frame camera keys [N] (nerfstudio reads them over the top-level ones): each frame's
+    own camera when the dataset has several, else nothing per frame."""
+    if ds.cameras is None or len(ds.cameras) == 1:
+        return [{} for _ in range(ds.n)]
+    table = [nerfstudio_camera(k) for k in ds.cameras]
+    return [table[int(c)] for c in ds.camera_index]
+
+
 def nerfstudio_camera(k: Intrinsics) -> dict[str, Any]:
     """Camera keys of ``k`` as nerfstudio reads them (fl_x, fl_y, cx, cy, w, h, camera_model,
     k1..k4, p1, p2; pixels).
@@ -165,10 +174,11 @@ def export_transforms(
 
     in_path, out_dir = Path(in_path), Path(out_dir)
     ds = open_dataset(in_path, kinds=("posed", "dataset", "shard"))
-    if ds.poses is None or ds.intrinsics is None:
+    if ds.poses is None or (ds.intrinsics is None and ds.cameras is None):
         raise InputError("has no camera poses or intrinsics to export", in_path)
-    k = ds.intrinsics
+    k = ds.camera_of(0)
     cam = nerfstudio_camera(k)
+    own = frame_camera_keys(ds)
     if centred_pinhole(k):
         cam["camera_angle_x"] = float(2 * np.arctan(k.width / (2 * k.fx)))
     files = [f"images/{i:05d}.png" for i in range(ds.n)]
@@ -183,7 +193,7 @@ def export_transforms(
         common["ply_file_path"] = PLY_NAME
     gl = opencv_to_opengl(ds.poses)
     frames = [
-        {"file_path": f, "transform_matrix": m.tolist(), "dronecap_name": ds.frame_name(i)}
+        {"file_path": f, "transform_matrix": m.tolist(), "dronecap_name": ds.frame_name(i)} | own[i]
         for i, (f, m) in enumerate(zip(files, gl, strict=True))
     ]
     lists, notes = split_lists(ds, files)

@@ -41,12 +41,16 @@ def scene_model(ds: Dataset, names: list[str], sparse_model: str | Path | None) 
 
     from dronecap.camera.colmap import colmap_camera
 
-    model, params = colmap_camera(ds.intrinsics)
-    k = ds.intrinsics
+    k = ds.camera_of(0)  # all cameras share the image size
     rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(
-        pycolmap.Camera(model=model, width=k.width, height=k.height, params=params, camera_id=1)
-    )
+    for c, cam in enumerate(ds.cameras or [k]):  # camera c + 1: one per camera of the table
+        model, params = colmap_camera(cam)
+        rec.add_camera_with_trivial_rig(
+            pycolmap.Camera(
+                model=model, width=k.width, height=k.height, params=params, camera_id=c + 1
+            )
+        )
+    index = ds.camera_index if ds.camera_index is not None else np.zeros(ds.n, int)
     w2c = np.linalg.inv(ds.poses)
     src, match = (None, {}) if sparse_model is None else _matched_model(ds, sparse_model)
     for i, name in enumerate(names):
@@ -56,7 +60,8 @@ def scene_model(ds: Dataset, names: list[str], sparse_model: str | Path | None) 
             s_cam = src.cameras[s_img.camera_id]
             scale = np.array([k.width / s_cam.width, k.height / s_cam.height])
             keypoints = np.array([p.xy for p in s_img.points2D]).reshape(-1, 2) * scale
-        image = pycolmap.Image(name=name, keypoints=keypoints, camera_id=1, image_id=i + 1)
+        camera_id = int(index[i]) + 1
+        image = pycolmap.Image(name=name, keypoints=keypoints, camera_id=camera_id, image_id=i + 1)
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[i, :3, :3]), w2c[i, :3, 3])
         rec.add_image_with_trivial_frame(image, pose)
     if src is not None:

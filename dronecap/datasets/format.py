@@ -12,10 +12,22 @@ Every stage exchanges data through these files (``frames.h5``, ``posed.h5``, ``d
     /split         int8    [N]           0 train, 1 val, 2 test, -1 unassigned
     /near_far      float64 [N, 2]        per-view near/far along the optical axis (scene units)
     /shards/<name> int16   [N]           client of each frame under a named sharding (-1: none)
+    /camera_index  int16   [N]           index into attrs `cameras` of every frame (version 3)
+    /drone         int16   [N]           the drone (source position 0..D-1) of every frame
     /extra/<name>  any     [...]         stage-specific tables (e.g. ingest's per-frame scores)
     attrs: format="dronecap", format_version, kind, intrinsics (fx, fy, cx, cy),
            distortion model + params, aabb [2, 3], normalization [4, 4], background,
-           provenance (JSON: stage, params, input hashes, created)
+           provenance (JSON: stage, params, input hashes, created),
+           cameras (JSON list of Camera dicts, version 3), drone_names (JSON list, version 3)
+
+A camera per frame (format_version 3): ``cameras`` is the table of cameras (one per drone, or
+per imported camera) and ``camera_index`` points every frame at its own; ``intrinsics`` is the
+camera when the file has exactly one (then equal to ``cameras[0]``) and None when there are
+several, so single-camera code keeps working. ``drone`` gives every frame's drone (the
+position of its source) and ``drone_names`` a name per drone; ``source_index`` is the frame's
+index in its own drone's source. A single flight is a swarm of one: files without these fields
+(all of version 1 and 2) read as one camera and drone 0 (:meth:`Dataset.camera_of`,
+:meth:`Dataset.drones`).
 
 Intrinsics (:class:`dronecap.camera.Camera`: fx, fy, cx, cy plus a lens-distortion model) are in
 pixels of the stored resolution, pixel centres at integer + 0.5
@@ -63,8 +75,8 @@ from dronecap.errors import InputError
 from dronecap.files import atomic_output, require_free_space
 
 FORMAT = "dronecap"
-FORMAT_VERSION = 2  # 2: checksummed arrays and metadata; 1: no checksums (still read)
-READ_VERSIONS = (1, 2)
+FORMAT_VERSION = 3  # 3: a camera and a drone per frame; 2: checksums; 1: none (still read)
+READ_VERSIONS = (1, 2, 3)
 Intrinsics = Camera  # the stored camera: dronecap.camera.Camera (one camera type)
 _CAMERA_FIELDS = {f.name for f in dataclasses.fields(Camera)}
 
@@ -94,6 +106,10 @@ class Dataset:
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
     attrs: dict[str, Any] = field(default_factory=dict)  # small JSON-able stage metadata
+    cameras: list[Camera] | None = None  # the table of cameras (one per drone or import)
+    camera_index: np.ndarray | None = None  # int16 [N] index into cameras of every frame
+    drone: np.ndarray | None = None  # int16 [N] drone (source position 0..D-1) of every frame
+    drone_names: list[str] | None = None  # [D] a name per drone (its source's name)
 
     @property
     def n(self) -> int:
@@ -113,6 +129,35 @@ class Dataset:
     def frame_name(self, i: int) -> str:
         """Name of frame ``i``: its source name, or ``frame_000123`` when the file has none."""
         return self.names[i] if self.names is not None else f"frame_{i:06d}"
+
+    def camera_of(self, i: int) -> Camera:
+        """The camera of frame ``i``: ``cameras[camera_index[i]]``, or the single camera."""
+        if self.cameras is None or self.camera_index is None:
+            if self.intrinsics is None:
+                raise DatasetError("has no camera intrinsics")
+            return self.intrinsics
+        return self.cameras[int(self.camera_index[i])]
+
+    def frame_cameras(self) -> list[Camera]:
+        """The camera of every frame, [N] (one object shared by the frames of a camera)."""
+        return [self.camera_of(i) for i in range(self.n)]
+
+    def drones(self) -> np.ndarray:
+        """The drone of every frame, int64 [N] (all 0 for a single flight)."""
+        if self.drone is None:
+            return np.zeros(self.n, np.int64)
+        return np.asarray(self.drone, np.int64)
+
+    def drone_name(self, d: int) -> str:
+        """Name of drone ``d``: its source's name, or ``drone_<d>`` when the file has none."""
+        return self.drone_names[d] if self.drone_names is not None else f"drone_{d}"
+
+    def set_cameras(self, cameras: list[Camera], camera_index: np.ndarray) -> None:
+        """Give frames their own cameras: ``camera_index`` int [N] into ``cameras``; sets
+        ``intrinsics`` to the camera when there is exactly one, None otherwise."""
+        self.cameras = list(cameras)
+        self.camera_index = np.asarray(camera_index, np.int16)
+        self.intrinsics = self.cameras[0] if len(self.cameras) == 1 else None
 
     def indices(self, split: str) -> np.ndarray:
         """Frame indices of a split ("train", "val", "test"), int64 [M]."""
@@ -153,6 +198,8 @@ class Dataset:
             split=take(self.split),
             near_far=take(self.near_far),
             shards={k: v[idx] for k, v in self.shards.items()},
+            camera_index=take(self.camera_index),
+            drone=take(self.drone),
             extra=dict(self.extra),
             provenance=dict(self.provenance),
             attrs=dict(self.attrs),
@@ -221,6 +268,8 @@ def _fill(f: h5py.File, ds: Dataset) -> None:
         "timestamps": (ds.timestamps, np.float64),
         "split": (ds.split, np.int8),
         "near_far": (ds.near_far, np.float64),
+        "camera_index": (ds.camera_index, np.int16),
+        "drone": (ds.drone, np.int16),
     }
     for name, (arr, dtype) in arrays.items():
         if arr is not None:
@@ -234,6 +283,11 @@ def _fill(f: h5py.File, ds: Dataset) -> None:
         _array(f, f"extra/{name}", _fixed_strings(arr) if arr.dtype.kind == "U" else arr)
     if ds.intrinsics is not None:
         _text_attr(f, "intrinsics", json.dumps(dataclasses.asdict(ds.intrinsics)))
+    if ds.cameras is not None:
+        cams = [dataclasses.asdict(c) for c in ds.cameras]
+        _text_attr(f, "cameras", json.dumps(cams, allow_nan=False))
+    if ds.drone_names is not None:
+        _text_attr(f, "drone_names", json.dumps(list(ds.drone_names)))
     if ds.aabb is not None:
         f.attrs["aabb"] = np.asarray(ds.aabb, dtype=np.float64)
     if ds.normalization is not None:
@@ -346,7 +400,7 @@ def _read_dataset(path: Path, kinds: tuple[str, ...] | None) -> Dataset:
             if "images" not in f or not isinstance(f["images"], h5py.Dataset):
                 raise DatasetError("images: missing required dataset", path)
             names = ["images", "alpha", "poses", "names", "source_index", "timestamps", "split"]
-            names.append("near_far")
+            names += ["near_far", "camera_index", "drone"]
             for group in ("shards", "extra"):
                 if group in f:
                     if not isinstance(f[group], h5py.Group):
@@ -375,6 +429,10 @@ def _read_dataset(path: Path, kinds: tuple[str, ...] | None) -> Dataset:
                 extra={k[6:]: _decode(v) for k, v in raw.items() if k.startswith("extra/")},
                 provenance=_json_object(attrs, "provenance", path),
                 attrs=_json_object(attrs, "stage_attrs", path),
+                cameras=_camera_table(attrs.get("cameras"), path),
+                camera_index=raw.get("camera_index"),
+                drone=raw.get("drone"),
+                drone_names=_drone_names(attrs.get("drone_names"), path),
             )
     except DatasetError:
         raise
@@ -417,9 +475,33 @@ def _camera(value: object, path: Path) -> Camera | None:
     """The ``intrinsics`` attribute (JSON object of Camera's fields) -> Camera."""
     if value is None:
         return None
-    d = _json_value(value, "intrinsics", path)
+    return _camera_from(_json_value(value, "intrinsics", path), "intrinsics", path)
+
+
+def _camera_table(value: object, path: Path) -> list[Camera] | None:
+    """The ``cameras`` attribute (JSON list of Camera objects) -> [Camera] (None when absent)."""
+    if value is None:
+        return None
+    items = _json_value(value, "cameras", path)
+    if not isinstance(items, list) or not items:
+        raise DatasetError("cameras: must be a non-empty JSON list of cameras", path)
+    return [_camera_from(d, f"cameras[{i}]", path) for i, d in enumerate(items)]
+
+
+def _drone_names(value: object, path: Path) -> list[str] | None:
+    """The ``drone_names`` attribute (JSON list of strings) -> [str] (None when absent)."""
+    if value is None:
+        return None
+    names = _json_value(value, "drone_names", path)
+    if not isinstance(names, list) or not all(isinstance(s, str) for s in names):
+        raise DatasetError("drone_names: must be a JSON list of strings", path)
+    return names
+
+
+def _camera_from(d: object, value: object, path: Path) -> Camera:
+    """A JSON object of Camera's fields -> Camera; ``value`` names it in errors."""
     if not isinstance(d, dict) or set(d) != _CAMERA_FIELDS:
-        raise DatasetError(f"intrinsics: must be a JSON object of {sorted(_CAMERA_FIELDS)}", path)
+        raise DatasetError(f"{value}: must be a JSON object of {sorted(_CAMERA_FIELDS)}", path)
     numbers = [d[k] for k in ("fx", "fy", "cx", "cy")]
     dist = d["distortion"]
     ok = (
@@ -430,7 +512,7 @@ def _camera(value: object, path: Path) -> Camera | None:
         and all(isinstance(x, int | float) and not isinstance(x, bool) for x in dist)
     )
     if not ok:
-        raise DatasetError(f"intrinsics: fields of the wrong type in {value!r:.120}", path)
+        raise DatasetError(f"{value}: fields of the wrong type in {d!r:.120}", path)
     return Camera(
         *map(float, numbers), d["width"], d["height"], d["model"], tuple(map(float, dist))
     )

@@ -23,6 +23,7 @@ from dronecap.datasets.import_scene import (
     check_options,
     imported_dataset,
     read_images,
+    resized_camera,
     scene_bounds,
 )
 from dronecap.errors import InputError
@@ -50,16 +51,17 @@ def read_model(model_dir: str | Path) -> Any:
     return rec
 
 
-def model_camera(rec: Any, model_dir: Path) -> Intrinsics:
-    """The one camera of the registered images, as a dronecap camera.
+def model_cameras(rec: Any, model_dir: Path) -> dict[int, Intrinsics]:
+    """The cameras of the registered images (COLMAP camera id -> dronecap camera).
 
     Raises:
-        InputError: several different cameras, or a COLMAP model dronecap has no lens for.
+        InputError: a COLMAP model dronecap has no lens for, or cameras of different image
+            sizes (a dataset's images share one size).
     """
     from dronecap.camera.colmap import camera_from_colmap
 
     used = {rec.images[i].camera_id for i in rec.reg_image_ids()}
-    cams = []
+    cams = {}
     for cid in sorted(used):
         c = rec.cameras[cid]
         model = "PINHOLE" if c.model.name == "SIMPLE_PINHOLE" else c.model.name
@@ -69,14 +71,14 @@ def model_camera(rec: Any, model_dir: Path) -> Intrinsics:
         k = camera_from_colmap(model, params, c.width, c.height)
         if k.problems():
             raise InputError(f"camera {cid}: {k.problems()[0]}", model_dir)
-        cams.append(k)
-    if any(k != cams[0] for k in cams[1:]):
+        cams[cid] = k
+    if len({(k.width, k.height) for k in cams.values()}) > 1:
         raise InputError(
-            f"the registered images use {len(cams)} different cameras; a dronecap dataset holds "
-            "one (import the images of each camera separately)",
+            f"the registered images use {len(cams)} cameras of different image sizes; a "
+            "dronecap dataset holds one size (import the images of each size separately)",
             model_dir,
         )
-    return cams[0]
+    return cams
 
 
 def import_colmap(
@@ -106,10 +108,12 @@ def import_colmap(
     check_options(size, color)
     model_dir, images_dir = Path(model_dir), Path(images_dir)
     rec = read_model(model_dir)
-    k0 = model_camera(rec, model_dir)
+    cams = model_cameras(rec, model_dir)
     if not images_dir.is_dir():
         raise InputError("no such images folder", images_dir)
     names = sorted(rec.images[i].name for i in rec.reg_image_ids())
+    table, index = camera_table(rec, cams, names)
+    k0 = table[0]
     _, c2w, points, seen = model_arrays(rec, names)
     ids = sorted(rec.points3D.keys())
     colors = np.array([rec.points3D[p].color for p in ids], np.uint8).reshape(-1, 3)
@@ -141,4 +145,22 @@ def import_colmap(
             "colmap_points": int(len(points)),
         },
     )
+    if len(table) > 1:  # COLMAP's several cameras: a camera per frame
+        ds.set_cameras([resized_camera(c, imgs.images) for c in table], index)
     return write_dataset(out_path, ds)
+
+
+def camera_table(
+    rec: Any, cams: dict[int, Intrinsics], names: list[str]
+) -> tuple[list[Intrinsics], np.ndarray]:
+    """The distinct cameras of the images ``names`` [N] (in order of first use; equal cameras
+    under two ids are one) and each image's index among them, int64 [N]."""
+    by_name = {img.name: img.camera_id for img in rec.images.values()}
+    table: list[Intrinsics] = []
+    index = np.zeros(len(names), np.int64)
+    for i, name in enumerate(names):
+        k = cams[by_name[name]]
+        if k not in table:
+            table.append(k)
+        index[i] = table.index(k)
+    return table, index

@@ -177,7 +177,8 @@ def import_transforms(
             raise InputError(f"frame {i}: {err}", jpath) from None
         poses.append(m)
     imgs = read_images(paths, size, color, progress)
-    k0 = _one_camera(entries, *imgs.source_size)
+    table, index = _frame_cameras(entries, *imgs.source_size)
+    k0 = table[0]
     k = resized_camera(k0, imgs.images)
     c2w = opengl_to_opencv(np.stack(poses))
     split = _split(entries, paths, first_json)
@@ -208,12 +209,16 @@ def import_transforms(
         {"source": "transforms.json"},
         normalization=norm,
     )
+    if len(table) > 1:  # nerfstudio's per-frame intrinsics: a camera per frame
+        ds.set_cameras([resized_camera(c, imgs.images) for c in table], index)
     return write_dataset(out_path, ds)
 
 
-def _one_camera(entries: list, width: int, height: int) -> Intrinsics:
-    """The single camera of all frames (top-level keys overridden per frame)."""
-    first: tuple[int, Intrinsics] | None = None
+def _frame_cameras(entries: list, width: int, height: int) -> tuple[list[Intrinsics], np.ndarray]:
+    """The distinct cameras of the frames (top-level keys overridden per frame, nerfstudio's
+    per-frame intrinsics) in order of first use, and each frame's index among them (int [N])."""
+    table: list[Intrinsics] = []
+    index = np.zeros(len(entries), np.int64)
     for i, (fr, meta, jpath, _) in enumerate(entries):
         keys = {**{c: meta[c] for c in CAMERA_KEYS if c in meta},
                 **{c: fr[c] for c in CAMERA_KEYS if c in fr}}  # fmt: skip
@@ -221,15 +226,10 @@ def _one_camera(entries: list, width: int, height: int) -> Intrinsics:
             k = camera_of(keys, width, height)
         except (ValueError, TypeError) as err:
             raise InputError(f"frame {i}: {err}", jpath) from None
-        if first is None:
-            first = (i, k)
-        elif k != first[1]:
-            raise InputError(
-                f"frames {first[0]} and {i} have different cameras ({first[1]} vs {k}); a "
-                "dronecap dataset holds one camera",
-                jpath,
-            )
-    return first[1]
+        if k not in table:
+            table.append(k)
+        index[i] = table.index(k)
+    return table, index
 
 
 def _split(entries: list, paths: list[Path], first_json: Path) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Shards for federated training: the train images of a dataset partitioned over K drones.
 
-Two schemes:
+Three schemes:
 
 - ``iid``: a seeded shuffle of the train images, cut into K parts whose sizes differ by at most 1;
 - ``sector``: each drone gets a contiguous angular sector of viewpoints — the azimuth of the
@@ -9,7 +9,10 @@ Two schemes:
   the cameras' horizontal x axes, on the side of their mean up vector). The circle is cut at
   the widest gap between neighbouring views, then into K runs of equal image counts, so some
   sides of the scene stay unseen by each drone (the paper's non-IID setup: lego, 4 drones x 25
-  images).
+  images);
+- ``drone``: a real swarm's partition, what each drone saw: drone d's shard holds the train
+  images of its own flight (the dataset's ``/drone``), with its own camera (K = the number of
+  drones; ``clients`` is not used).
 
 Each shard is a dataset file ``client_K.h5`` (kind "shard") holding that drone's train images plus
 the common test set; ``shards/<scheme>`` marks each frame's client (-1 for test frames) and
@@ -32,7 +35,7 @@ from dronecap.datasets.format import SPLITS, Dataset, open_dataset, provenance, 
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, sha256_file
 
-SCHEMES = ("iid", "sector")
+SCHEMES = ("iid", "sector", "drone")
 
 
 def scene_up(poses: np.ndarray) -> np.ndarray:
@@ -118,6 +121,22 @@ def sector_assignment(az: np.ndarray, clients: int) -> tuple[np.ndarray, np.ndar
     return out, ranges
 
 
+def drone_count(ds: Dataset, train: np.ndarray, in_path: Path) -> int:
+    """The number of drones D of ``ds`` (one shard each); every one must own train frames.
+
+    Raises:
+        InputError: a drone with no train frame (its shard would be empty), naming it.
+    """
+    drones = ds.drones()
+    count = int(drones.max()) + 1 if ds.n else 0
+    if ds.drone_names is not None:
+        count = max(count, len(ds.drone_names))
+    have = np.bincount(drones[train], minlength=count)
+    for d in np.flatnonzero(have == 0):
+        raise InputError(f"drone {ds.drone_name(int(d))!r} has no train frame to shard", in_path)
+    return count
+
+
 def shard_dataset(
     in_path: str | Path,
     out_dir: str | Path,
@@ -131,8 +150,8 @@ def shard_dataset(
         in_path: a dataset (kind "dataset") with poses and a split.
         out_dir: folder to write (replaced atomically): client_K.h5 files and summary.json. An
             existing folder holding anything else is refused, not replaced.
-        clients: number of drones K >= 1.
-        scheme: "iid" or "sector".
+        clients: number of drones K >= 1 (scheme "drone": the dataset's drone count instead).
+        scheme: "iid", "sector" or "drone".
         seed: seed of the iid shuffle (recorded for both schemes).
 
     Raises:
@@ -159,6 +178,8 @@ def shard_dataset(
     train, test = ds.indices("train"), ds.indices("test")
     if not len(test):
         raise InputError("has no test frames: the drones' common test set would be empty", in_path)
+    if scheme == "drone":
+        clients = drone_count(ds, train, in_path)
     if len(train) < clients:
         raise InputError(
             f"{clients} clients need at least {clients} train images, found {len(train)}", in_path
@@ -171,6 +192,8 @@ def shard_dataset(
     ranges = None
     if scheme == "iid":
         owner = iid_assignment(len(train), clients, seed)
+    elif scheme == "drone":
+        owner = ds.drones()[train]
     else:
         flat = ds.poses[train, :3, 3] - centre
         horizontal = np.linalg.norm(flat - np.outer(flat @ up, up), axis=1)
@@ -205,6 +228,8 @@ def shard_dataset(
                 "views": [ds.frame_name(i) for i in mine],
                 "parent_index": mine.tolist(),
             }
+            if scheme == "drone":
+                entry["drone"] = ds.drone_name(k)
             if ranges is not None:
                 first, last = np.degrees(ranges[k])
                 entry["azimuth_deg"] = [round(float(first), 3), round(float(last), 3)]

@@ -2,7 +2,9 @@
 
 With the default k = 8 the frames at capture positions 0, 8, 16, ... are held out, so a flight
 of N frames gives ceil(N / 8) test frames (the paper's 1954 frames -> 1709 train / 245 test).
-A file that already carries a split (an imported scene with its official split) keeps it.
+A file that already carries a split (an imported scene with its official split) keeps it. A
+swarm's file (several drones) is split drone by drone, each in its own capture order, so every
+drone holds out one frame in k of its own flight.
 """
 
 from __future__ import annotations
@@ -33,6 +35,18 @@ def every_kth_split(order: np.ndarray, every: int = 8) -> np.ndarray:
     return np.where(rank % every == 0, SPLITS["test"], SPLITS["train"]).astype(np.int8)
 
 
+def per_drone_split(ds: Dataset, every: int = 8) -> np.ndarray:
+    """:func:`every_kth_split` of each drone's frames in its own capture order (``source_index``
+    when the file has it, else file order): int8 [N] with SPLITS values."""
+    order = ds.source_index if ds.source_index is not None else np.arange(ds.n)
+    drones = ds.drones()
+    split = np.empty(ds.n, np.int8)
+    for d in np.unique(drones):
+        mine = np.flatnonzero(drones == d)
+        split[mine] = every_kth_split(order[mine], every)
+    return split
+
+
 def has_split(ds: Dataset) -> bool:
     """True when ``ds`` already assigns at least one frame to a split."""
     return ds.split is not None and bool((ds.split >= 0).any())
@@ -57,8 +71,7 @@ def split_dataset(in_path: str | Path, out_path: str | Path, every: int = 8) -> 
     if kept:
         split = ds.split
     else:
-        order = ds.source_index if ds.source_index is not None else np.arange(ds.n)
-        split = every_kth_split(order, every)
+        split = per_drone_split(ds, every)
     for name in ("train", "test"):
         if not (split == SPLITS[name]).any():
             raise InputError(f"a split of {ds.n} frames leaves no {name} frame", in_path)

@@ -15,7 +15,7 @@ from dronecap.camera import Camera
 
 from .marching import Samples, take_rays
 from .photometric import normalized_radius
-from .rays import camera_rays
+from .rays import frame_rays
 
 
 class RayBatch(NamedTuple):
@@ -38,7 +38,8 @@ def draw_rays(
     images: torch.Tensor,
     alpha: torch.Tensor | None,
     poses: torch.Tensor,
-    camera: Camera,
+    cameras: tuple[Camera, ...],
+    camera_index: torch.Tensor,
     background: tuple[float, ...],
     images_per_step: int,
     n_rays: int,
@@ -50,7 +51,8 @@ def draw_rays(
         images: uint8 [N, H, W, C] training frames.
         alpha: uint8 [N, H, W] or None.
         poses: float32 [N, 4, 4] camera-to-world.
-        camera: the frames' camera (lens model included).
+        cameras: the table of cameras (lens models included); ``camera_index`` (int64 [N]) picks
+            each frame's.
         background: [C] colour in [0, 1] for frames without alpha.
     """
     g, dev = generator, images.device
@@ -59,7 +61,7 @@ def draw_rays(
     which = imgs[torch.randint(imgs.numel(), (n_rays,), generator=g, device=dev)]
     u = torch.randint(w, (n_rays,), generator=g, device=dev)
     v = torch.randint(h, (n_rays,), generator=g, device=dev)
-    origins, dirs = camera_rays(poses[which], camera, u, v)
+    origins, dirs = frame_rays(poses[which], cameras, camera_index[which], u, v)
     rgb = images[which, v, u].float() / 255.0
     if alpha is not None:
         a = (alpha[which, v, u].float() / 255.0).unsqueeze(-1)
@@ -68,7 +70,7 @@ def draw_rays(
     else:
         bg = torch.as_tensor(background, dtype=torch.float32, device=dev).expand(n_rays, c)
         target = rgb
-    return RayBatch(origins, dirs, target, bg, which, normalized_radius(u, v, camera))
+    return RayBatch(origins, dirs, target, bg, which, normalized_radius(u, v, cameras[0]))
 
 
 def whole_rays(rays: RayBatch, s: Samples, batch_samples: int) -> tuple[RayBatch, Samples]:

@@ -92,7 +92,7 @@ def evaluate_views(
     idx = test_views(ds) if views is None else np.asarray(views, np.int64)
     per_view, images = [], []
     for i in progress_bar(idx, desc="evaluate", unit="view", disable=not progress):
-        pred = render(ds.poses[i], ds.intrinsics)
+        pred = render(ds.poses[i], ds.camera_of(i))
         gt = ground_truth(ds, int(i), background)
         p, s = image_metrics(pred, gt)
         matched = exposure_matched_psnr(pred, gt)

@@ -4,17 +4,23 @@ Rays go through pixel centres ``(u + 0.5, v + 0.5)`` *as the lens saw them*: the
 distortion model (:class:`dronecap.camera.Camera`: SIMPLE_RADIAL, OPENCV, fisheye, ...) is undone
 once per camera by OpenCV (:meth:`Camera.pixel_directions`) and the resulting table of
 camera-frame directions is cached, so training, rendering and evaluation all cast the rays the
-images were actually taken along.
+images were actually taken along. A dataset with a camera per frame (several drones) casts each
+frame's rays through its own camera (:func:`frame_rays`).
 """
 
 from __future__ import annotations
 
 import functools
+from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from dronecap.camera import Camera
+
+if TYPE_CHECKING:
+    from dronecap.datasets.format import Dataset
 
 TINY = 1e-12  # direction components smaller than this count as parallel to a slab
 
@@ -46,6 +52,48 @@ def camera_rays(c2w: Tensor, camera: Camera, u: Tensor, v: Tensor) -> tuple[Tens
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     origins = c2w[..., :3, 3].expand_as(dirs)
     return origins.contiguous(), dirs
+
+
+@functools.lru_cache(maxsize=4)
+def _direction_tables(cameras: tuple[Camera, ...]) -> Tensor:
+    """The direction tables of ``cameras`` stacked: float32 [K, H, W, 3] CPU tensor."""
+    return torch.stack([pixel_directions(k) for k in cameras])
+
+
+def frame_cameras(
+    ds: Dataset, idx: np.ndarray, device: torch.device | str = "cpu"
+) -> tuple[tuple[Camera, ...], Tensor]:
+    """The camera table of ``ds`` and the camera of each frame ``idx`` [M] in it (int64 [M]
+    tensor on ``device``); a single-camera dataset is a table of one."""
+    if ds.cameras is None or ds.camera_index is None:
+        return (ds.camera_of(0),), torch.zeros(len(idx), dtype=torch.int64, device=device)
+    index = np.asarray(ds.camera_index, np.int64)[idx]
+    return tuple(ds.cameras), torch.as_tensor(index, device=device)
+
+
+def frame_rays(
+    c2w: Tensor, cameras: tuple[Camera, ...], which: Tensor, u: Tensor, v: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Rays through pixels ``(u, v)``, each of its own frame's camera (all cameras the same
+    image size).
+
+    Args:
+        c2w: [N, 4, 4] camera-to-world of each ray's frame, OpenCV axes.
+        cameras: the table of cameras [K].
+        which: [N] index into ``cameras`` of each ray's camera.
+        u, v: [N] integer pixel column and row indices.
+
+    Returns:
+        origins [N, 3] and unit directions [N, 3] (world units, float32, on ``c2w``'s device).
+    """
+    if len(cameras) == 1:
+        return camera_rays(c2w, cameras[0], u, v)
+    table = _direction_tables(cameras).to(c2w.device)
+    d = table[which.long(), v.long(), u.long()]
+    c2w = c2w.float()
+    dirs = (c2w[:, :3, :3] @ d.unsqueeze(-1)).squeeze(-1)
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    return c2w[:, :3, 3].contiguous(), dirs
 
 
 def ray_aabb(origins: Tensor, dirs: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -84,7 +84,7 @@ def training_frames(ds: Dataset) -> np.ndarray:
 def scene_of(ds: Dataset) -> Scene:
     """Bounds, near distance, focal, channels and background of ``ds`` (InputError when
     poses, intrinsics or the AABB are missing, or it has no train frames)."""
-    if ds.poses is None or ds.intrinsics is None:
+    if ds.poses is None or (ds.intrinsics is None and ds.cameras is None):
         raise InputError("dataset has no poses/intrinsics: run `dronecap sfm` first")
     if ds.aabb is None:
         raise InputError("dataset has no scene AABB (attrs 'aabb')")
@@ -95,8 +95,7 @@ def scene_of(ds: Dataset) -> Scene:
         centre = np.mean(ds.aabb, 0)
         near = float(np.mean(np.linalg.norm(ds.poses[train, :3, 3] - centre, axis=1)))
     bg = ds.background if ds.background is not None else (0.0,) * ds.channels
-    k = ds.intrinsics
-    focal = 0.5 * float(k.fx + k.fy)
+    focal = float(np.mean([0.5 * (k.fx + k.fy) for k in ds.cameras or [ds.intrinsics]]))
     return Scene(np.asarray(ds.aabb, float), near, focal, ds.channels, tuple(bg))
 
 

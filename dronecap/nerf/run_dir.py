@@ -360,7 +360,7 @@ def _check(
     psnr = trainer.evaluate(ds, views)["psnr"]
     why = budget.record_check(until, state, trainer.step, trainer.train_seconds, psnr)
     preview = render_preview(
-        trainer.volume(), ds.poses[views[0]], ds.intrinsics, trainer.scene.background,
+        trainer.volume(), ds.poses[views[0]], ds.camera_of(views[0]), trainer.scene.background,
         PREVIEW_SCALE,
     )  # fmt: skip
     write_png(out / PROGRESS / f"step_{trainer.step:06d}.png", preview)

@@ -34,7 +34,7 @@ from .losses import huber_sum, psnr_from_mse
 from .march_kernel import march_function
 from .marching import Samples
 from .photometric import Photometric
-from .rays import ray_aabb
+from .rays import frame_cameras, ray_aabb
 from .render import Volume, render_rays, render_view
 from .resolve import Resolved, resolve, training_frames
 from .volrend import render_packed
@@ -123,7 +123,7 @@ class Trainer:
             raise InputError(
                 f"dataset has {train.channels} channels, the model {self.scene.channels}"
             )
-        if train.poses is None or train.intrinsics is None:
+        if train.poses is None or (train.intrinsics is None and train.cameras is None):
             raise InputError("dataset has no poses/intrinsics: run `dronecap sfm` first")
         idx = training_frames(train)
         if idx.size == 0:
@@ -133,7 +133,8 @@ class Trainer:
             None if train.alpha is None else torch.as_tensor(train.alpha[idx], device=self.device)
         )
         self.poses = torch.as_tensor(train.poses[idx], dtype=torch.float32, device=self.device)
-        self.camera = train.intrinsics
+        self.cameras, self.camera_index = frame_cameras(train, idx, self.device)
+        self.camera = self.cameras[0]
         if self.photometric.resize_frames(idx.size):  # other frames: their gains start at 1
             group = self.optimizer.param_groups[PHOTOMETRIC_GROUP]
             for p in group["params"]:
@@ -155,7 +156,8 @@ class Trainer:
     def _draw_rays(self, n_rays: int) -> RayBatch:
         """Random pixels of ``images_per_step`` random training images: rays and targets."""
         return draw_rays(
-            self.images, self.alpha, self.poses, self.camera, self.scene.background,
+            self.images, self.alpha, self.poses, self.cameras, self.camera_index,
+            self.scene.background,
             self.cfg.images_per_step, n_rays, self.generator,
         )  # fmt: skip
 

@@ -16,7 +16,7 @@ def trajectory_plot(
 ) -> Path | None:
     """Camera centres of ``posed.h5`` from above (x-y) and from the side (x-z) -> PNG.
 
-    With ``gt_path`` (the simulator's flight.json / poses.json), the ground-truth centres of the
+    A swarm's drones are drawn in a colour each. With ``gt_path`` (the simulator's flight.json / poses.json), the ground-truth centres of the
     same source frames are aligned onto the recovered ones by a similarity (Umeyama) and drawn
     too; the title gives the ATE as a percentage of the flight's extent.
     """
@@ -47,7 +47,10 @@ def trajectory_plot(
     for ax, (a, b), name in zip(axes, ((0, 1), (0, 2)), ("top (x-y)", "side (x-z)"), strict=True):
         if ref is not None:
             ax.plot(ref[:, a], ref[:, b], "-", color="0.6", lw=2, label="ground truth (aligned)")
-        ax.plot(est[:, a], est[:, b], ".-", color="C0", ms=3, lw=0.8, label="recovered")
+        for d in np.unique(ds.drones()):  # a swarm: one colour per drone
+            e, several = est[ds.drones() == d], len(ds.drone_names or []) > 1
+            label = f"recovered: {ds.drone_name(int(d))}" if several else "recovered"
+            ax.plot(e[:, a], e[:, b], ".-", color=f"C{d}", ms=3, lw=0.8, label=label)
         ax.plot(est[:1, a], est[:1, b], "o", color="C2", label="start")
         ax.set_title(name)
         ax.set_aspect("equal", adjustable="datalim")

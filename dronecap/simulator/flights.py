@@ -9,6 +9,9 @@ route at N frames (fewer frames = a faster flight with more motion per frame). I
 - yaw sweeps of +-30 degrees (looking at the walls and the cones), lateral and height sway,
   a slight downward pitch, and a few short yaw twitches ("gusts") that blur a handful of frames.
 
+A swarm's drone flies one ``part`` of the route (a range of the activity clock; the orbit's
+route wraps around), so drones of one scene cover neighbouring, overlapping pieces of it.
+
 ``pose(u)`` returns camera-to-world matrices in OpenCV camera axes (x right, y down, z forward).
 """
 
@@ -56,6 +59,7 @@ class Flight:
 
     scene: str
     rng_seed: int
+    part: tuple[float, float] = (0.0, 1.0)  # the piece of the route flown (route clock units)
 
     def __post_init__(self) -> None:
         rng = np.random.default_rng([self.rng_seed, 3])
@@ -76,7 +80,8 @@ class Flight:
     def pose(self, u: np.ndarray, frames: int) -> np.ndarray:
         """Camera-to-world [T, 4, 4] at normalised times ``u`` [T] of a ``frames``-frame flight."""
         u = np.atleast_1d(np.asarray(u, float))
-        s, ph = self.clock(u), self._phase
+        a, b = self.part
+        s, ph = a + (b - a) * self.clock(u), self._phase
         seconds = u * frames / 30.0
         jitter = np.stack(
             [

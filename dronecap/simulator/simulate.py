@@ -92,7 +92,17 @@ def intrinsics_record(sensor: Sensor) -> dict[str, object]:
 class SimulatedFlight:
     """A flight of ``frames`` source frames at 30 Hz through ``capture``; renders lazily."""
 
-    def __init__(self, scene_name: str, frames: int, seed: int, capture: Capture) -> None:
+    def __init__(
+        self,
+        scene_name: str,
+        frames: int,
+        seed: int,
+        capture: Capture,
+        part: tuple[float, float] = (0.0, 1.0),
+        scene_seed: int | None = None,
+    ) -> None:
+        """``seed`` draws the flight's noise, exposure, link and onboard state; ``scene_seed``
+        (default ``seed``) the scene and its route, of which the drone flies ``part``."""
         if scene_name not in SCENES:
             raise InputError(f"unknown scene {scene_name!r}, expected one of {sorted(SCENES)}")
         if frames < 2:
@@ -102,8 +112,9 @@ class SimulatedFlight:
         if problems := capture.problems():
             raise InputError("; ".join(problems))
         self.scene_name, self.frames, self.seed, self.capture = scene_name, frames, seed, capture
-        self.scene = SCENES[scene_name](seed)
-        self.flight = Flight(scene_name, seed)
+        scene_seed = seed if scene_seed is None else scene_seed
+        self.scene = SCENES[scene_name](scene_seed)
+        self.flight = Flight(scene_name, scene_seed, part)
         sensor = capture.sensor
         self.renderer = Renderer(self.scene, sensor.lens)
         self.duration = frames / FPS
@@ -220,9 +231,13 @@ def simulate(
     progress: bool = True,
     capture: Capture | None = None,
     fmt: str = "mp4",
+    part: tuple[float, float] = (0.0, 1.0),
+    scene_seed: int | None = None,
 ) -> tuple[Path, Path]:
     """Render a flight to ``output``: a video (``fmt`` mp4; ground truth beside it with suffix
     ``.json``) or a capture folder (nanocockpit, pulp-dronet; ``flight.json`` inside).
+
+    ``part`` and ``scene_seed``: a swarm's drone (:class:`SimulatedFlight`).
 
     Returns:
         (video or folder, ground-truth JSON path); both appear only when complete.
@@ -238,7 +253,7 @@ def simulate(
         capture = dataclasses.replace(
             capture, sensor=dataclasses.replace(capture.sensor, jpeg_quality=0)
         )
-    sim = SimulatedFlight(scene_name, frames, seed, capture)
+    sim = SimulatedFlight(scene_name, frames, seed, capture, part, scene_seed)
     output = Path(output)
     doc = sim.document(fmt)
     doc["sensor"]["jpeg_quality"] = quality  # type: ignore[index]

@@ -83,7 +83,18 @@ def test_refusals(lego_model, tmp_path: Path, capsys: pytest.CaptureFixture):
     next(images.glob("r_*.png")).unlink()
     with pytest.raises(InputError, match="missing or unreadable image"):
         import_colmap(root / "sparse", images, tmp_path / "d.h5", progress=False)
-    # two different cameras
+    assert main(["import-colmap", str(tmp_path / "nope"), str(images), "-o",
+                 str(tmp_path / "d.h5")]) == 1  # fmt: skip
+    err = capsys.readouterr().err
+    assert "no such folder" in err and err.count("\n") == 1
+
+
+def test_several_cameras_give_a_camera_per_frame(lego_model, tmp_path: Path) -> None:
+    """COLMAP's several cameras (one image on a second camera) import as a camera table."""
+    root, _, _ = lego_model
+    images = tmp_path / "images"
+    shutil.copytree(root / "images", images)
+    shutil.copyfile(next(images.glob("r_*.png")), images / "r_999.png")
     rec = pycolmap.Reconstruction(str(root / "sparse"))
     cam = pycolmap.Camera(model="PINHOLE", width=160, height=160, params=[100, 100, 80, 80])
     cam.camera_id = 2
@@ -93,10 +104,8 @@ def test_refusals(lego_model, tmp_path: Path, capsys: pytest.CaptureFixture):
     two = tmp_path / "two"
     two.mkdir()
     rec.write_binary(str(two))
-    with pytest.raises(InputError, match="2 different cameras"):
-        import_colmap(two, root / "images", tmp_path / "d.h5", progress=False)
-    assert not (tmp_path / "d.h5").exists()
-    assert main(["import-colmap", str(tmp_path / "nope"), str(images), "-o",
-                 str(tmp_path / "d.h5")]) == 1  # fmt: skip
-    err = capsys.readouterr().err
-    assert "no such folder" in err and err.count("\n") == 1
+    ds = open_dataset(import_colmap(two, images, tmp_path / "d.h5", size=80, progress=False))
+    assert len(ds.cameras) == 2 and ds.intrinsics is None
+    last = ds.names.index("r_999.png")
+    assert ds.camera_of(last).fx == pytest.approx(50.0) and ds.camera_of(0).fx != 50.0
+    assert (ds.camera_index == 1).sum() == 1

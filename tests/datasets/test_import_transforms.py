@@ -156,7 +156,6 @@ def _scene_with(tmp_path: Path, change) -> Path:
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (lambda m: m["frames"][1].update(fl_x=60.0), "frames 0 and 1 have different cameras"),
         (lambda m: m.update(camera_model="EQUIRECTANGULAR"), "camera_model 'EQUIRECTANGULAR'"),
         (lambda m: m["frames"][0].update(k4=0.01), "k4"),
         (lambda m: m["frames"][2].update(transform_matrix=[[1, 0], [0, 1]]),
@@ -176,6 +175,23 @@ def test_bad_datasets_are_refused_with_one_line(tmp_path: Path, change, message:
         import_transforms(root, tmp_path / "d.h5", progress=False)
     assert "\n" not in str(err.value)
     assert not (tmp_path / "d.h5").exists()
+
+
+def test_per_frame_intrinsics_give_a_camera_per_frame(tmp_path: Path) -> None:
+    root = _scene_with(tmp_path, lambda m: m["frames"][1].update(fl_x=60.0, fl_y=60.0))
+    ds = open_dataset(import_transforms(root, tmp_path / "d.h5", progress=False))
+    assert len(ds.cameras) == 2 and ds.intrinsics is None
+    assert ds.camera_index.tolist() == [0, 1, 0, 0]
+    meta = json.loads((root / "transforms.json").read_text())
+    base = meta["frames"][0].get("fl_x", meta.get("fl_x"))
+    assert ds.camera_of(1).fx / ds.camera_of(0).fx == pytest.approx(60.0 / base)
+    out = tmp_path / "out"
+    assert main(["export-transforms", str(tmp_path / "d.h5"), "-o", str(out)]) == 0
+    meta = json.loads((out / "transforms.json").read_text())
+    fx = [f["fl_x"] for f in meta["frames"]]
+    assert fx[1] == ds.camera_of(1).fx and fx[0] == fx[2] == ds.camera_of(0).fx
+    back = open_dataset(import_transforms(out, tmp_path / "back.h5", progress=False))
+    assert back.cameras == ds.cameras and back.camera_index.tolist() == [0, 1, 0, 0]
 
 
 def test_cli_refusals(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
