@@ -105,6 +105,10 @@ class Runner:
         self.first = ids.index(start) if start else 0
         self.last = ids.index(until) if until else len(ids) - 1
         self.stage_dirs = {sid: self.dir / sid for sid in ids}
+        inside = root.resolve()
+        for d in (self.dir, *self.stage_dirs.values()):
+            if d.is_symlink() or not d.resolve().is_relative_to(inside):
+                raise InputError(f"is a link or leaves the runs folder {root}: not using it", d)
 
     def _plan(self, stage: Stage) -> tuple[dict[str, Any], dict[str, str], str]:
         params = {

@@ -91,3 +91,53 @@ def test_trusted_old_checkpoint_converts(trained: Path, tmp_path: Path) -> None:
         read_checkpoint(path)
     assert convert_main([str(path), "--trust"]) == 0
     assert read_checkpoint(path)["step"] == 2
+
+
+_SIM = "{command: simulate, params: {scene: corridor, frames: 3}}"
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "name", "message"),
+    [
+        (f"p:\n  stages:\n    '../../victim': {_SIM}\n", "p", "stage name '../../victim'"),
+        (f"'../x':\n  stages:\n    s: {_SIM}\n", "../x", "pipeline name '../x'"),
+        (f"'/abs':\n  stages:\n    s: {_SIM}\n", "/abs", "pipeline name '/abs'"),
+        (f"p:\n  stages:\n    'a/b': {_SIM}\n", "p", "stage name 'a/b'"),
+        (f"p:\n  stages:\n    '..': {_SIM}\n", "p", "stage name '..'"),
+        ("p:\n  stages:\n    s: {command: simulate, params: {scene: !!python/object/apply:os.sys"
+         "tem ['touch MARKER'], frames: 3}}\n", "p", "tag !!python/object/apply:os.system"),
+        (f"p:\n  stages:\n    '$(touch MARKER)': {_SIM}\n", "p", "stage name '$(touch MARKER)'"),
+    ],
+)  # fmt: skip
+def test_hostile_pipeline_is_refused_before_anything(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, yaml_text: str, name: str, message: str
+) -> None:
+    """Names that would leave the runs folder, Python tags, shell text: one line, nothing run,
+    the folder a stage name points at untouched."""
+    work = tmp_path / "a" / "b"
+    (work / "runs").mkdir(parents=True)
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "keep.txt").write_text("mine")
+    (work / "pipelines.yaml").write_text(yaml_text)
+    monkeypatch.chdir(work)
+    res = run_cli(["run", name, "--file", "pipelines.yaml", "--runs", "runs"])
+    assert res.one_line_error("run"), res
+    assert message in res.err, res.err
+    assert (victim / "keep.txt").read_text() == "mine"
+    assert not (work / "MARKER").exists()
+    assert sorted(p.name for p in work.rglob("*")) == ["pipelines.yaml", "runs"]
+
+
+def test_stage_folder_linked_out_of_runs_is_refused(tmp_path: Path) -> None:
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "keep.txt").write_text("mine")
+    (tmp_path / "pipelines.yaml").write_text(f"p:\n  stages:\n    s: {_SIM}\n")
+    (tmp_path / "runs" / "p").mkdir(parents=True)
+    (tmp_path / "runs" / "p" / "s").symlink_to(victim)
+    res = run_cli(["run", "p", "--file", str(tmp_path / "pipelines.yaml"), "--runs",
+                   str(tmp_path / "runs")])  # fmt: skip
+    assert res.one_line_error("run"), res
+    assert "leaves the runs folder" in res.err
+    assert (victim / "keep.txt").read_text() == "mine"
