@@ -22,7 +22,7 @@ import h5py
 import numpy as np
 import pytest
 
-from tests.reliability.conftest import ring_poses, run_cli
+from tests.reliability.conftest import run_cli
 
 SIX_GB = 6_000_000 * 1024  # ulimit -v 6000000 (KiB)
 
