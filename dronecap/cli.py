@@ -108,14 +108,14 @@ def call(stage: Stage, settings_of: Callable[[type], Any]) -> int:
     """Build a command's settings with ``settings_of(Settings)``, check them and run it; the
     exit code, with every user-facing failure as one line on stderr."""
     from dronecap.errors import InputError
-    from dronecap.files import command_outputs, output_locks
+    from dronecap.files import check_command_paths, output_locks
     from dronecap.stage import check
 
     try:
         settings_cls, run = stage.load()
         settings = settings_of(settings_cls)
         check(settings)
-        with output_locks(command_outputs(stage, settings)):  # one writer per output
+        with output_locks(check_command_paths(stage, settings)):  # one writer per output
             return int(run(settings) or 0)
     except InputError as err:
         print(f"dronecap {stage.name}: error: {err}", file=sys.stderr)

@@ -128,10 +128,67 @@ def _acquire(lock: Path, shown: Path, wait: bool) -> int:
         time.sleep(0.01)
 
 
+# What an output's name says it holds (its conventional name's suffix), and how to recognise it.
+FILE_KINDS = {".h5": "an HDF5 file", ".json": "a JSON file", ".png": "a PNG image"}
+FILE_KINDS |= dict.fromkeys((".mp4", ".mov", ".avi", ".mkv"), "a video")
+
+
+OUTPUT_SETTINGS = ("output", "out")  # the settings that name a command's output
+
+
+def file_kind(path: Path) -> str | None:
+    """Which of :data:`FILE_KINDS` the bytes of ``path`` are (None: none of them)."""
+    with open(path, "rb") as fh:
+        head = fh.read(16)
+    if head.startswith(b"\x89HDF\r\n\x1a\n"):
+        return "an HDF5 file"
+    if head.startswith(b"\x89PNG"):
+        return "a PNG image"
+    if head[4:8] == b"ftyp" or head.startswith((b"RIFF", b"\x1aE\xdf\xa3")):
+        return "a video"
+    if head.lstrip()[:1] in (b"{", b"["):
+        return "a JSON file"
+    return None
+
+
+def check_output_path(out: Path, inputs: list[Path], writes: str | None) -> None:
+    """Refuse, before any work, an output that is one of the command's input files, or an
+    existing non-empty file of another kind than the ``writes`` it will hold (``ingest m.mp4
+    -o m.mp4``, ``split -o some.mp4``)."""
+    if not out.is_file():
+        return
+    if any(p.is_file() and os.path.samefile(p, out) for p in inputs):
+        raise OutputError("is also an input of this command: not writing over it", out)
+    if writes is not None and out.stat().st_size and (kind := file_kind(out)) != writes:
+        raise OutputError(
+            f"holds {kind or 'a file of another kind'} and this command writes {writes}: not "
+            "replacing it (choose another output name, or remove the file)",
+            out,
+        )
+
+
+def check_command_paths(stage: object, settings: object) -> list[Path]:
+    """:func:`check_output_path` of every output of a command (:func:`command_outputs`), its
+    inputs being the settings that name existing files; returns those outputs."""
+    outs = command_outputs(stage, settings)
+    names = [Path(str(o)) for o in getattr(stage, "outputs", ())]
+    inputs = []
+    for name, value in vars(settings).items():
+        if name in OUTPUT_SETTINGS or name == getattr(stage, "folder", None):
+            continue
+        for v in value if isinstance(value, list) else [value]:
+            if isinstance(v, str) and v and Path(v).is_file():
+                inputs.append(Path(v))
+    for i, out in enumerate(outs):
+        writes = FILE_KINDS.get(names[i].suffix) if i < len(names) else None
+        check_output_path(out, inputs, writes)
+    return outs
+
+
 def command_outputs(stage: object, settings: object) -> list[Path]:
     """The outputs a command's ``settings`` will write: its ``output`` / ``out`` / folder setting
     when given, else the registry entry ``stage``'s conventional names in its workspace."""
-    names = ("output", "out", getattr(stage, "folder", None))
+    names = (*OUTPUT_SETTINGS, getattr(stage, "folder", None))
     given = [getattr(settings, n) for n in names if n and getattr(settings, n, None)]
     if given:
         return [Path(str(v)) for v in dict.fromkeys(given)]
