@@ -99,3 +99,30 @@ def test_two_trains_into_one_run_folder(tmp_path: Path) -> None:
     info = json.loads((tmp_path / "run" / "run.json").read_text())
     assert Path(info["dataset"]).name == "a.h5"
     assert (tmp_path / "run" / "metrics.json").exists()
+
+
+def test_waiting_for_another_kernel_build_is_said(tmp_path: Path) -> None:
+    """A process that finds the kernel build folder locked (another process building) says on
+    stderr that it waits, and for whom, then goes on once the lock is released."""
+    import fcntl
+
+    from dronecap.nerf.backend import KERNELS, WAIT_NOTICE, build_dir
+
+    name = next(iter(KERNELS))
+    folder = build_dir(name)
+    folder.mkdir(parents=True, exist_ok=True)
+    code = f"import contextlib\nfrom dronecap.nerf.backend import load\n"
+    code += f"with contextlib.suppress(Exception):\n    load({name!r})\n"
+    with open(folder / ".dronecap-build.lock", "a+") as guard:
+        fcntl.flock(guard, fcntl.LOCK_EX)
+        guard.seek(0)
+        guard.truncate()
+        guard.write(str(os.getpid()))
+        guard.flush()
+        p = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE, text=True,
+                             env={**os.environ, "PYTHONPATH": os.getcwd()})  # fmt: skip
+        line = p.stderr.readline()
+        assert line.strip() == f"{WAIT_NOTICE} (pid {os.getpid()})"
+        assert p.poll() is None
+    p.communicate(timeout=600)
+    assert p.returncode == 0
