@@ -111,7 +111,7 @@ def test_waiting_for_another_kernel_build_is_said(tmp_path: Path) -> None:
     name = next(iter(KERNELS))
     folder = build_dir(name)
     folder.mkdir(parents=True, exist_ok=True)
-    code = f"import contextlib\nfrom dronecap.nerf.backend import load\n"
+    code = "import contextlib\nfrom dronecap.nerf.backend import load\n"
     code += f"with contextlib.suppress(Exception):\n    load({name!r})\n"
     with open(folder / ".dronecap-build.lock", "a+") as guard:
         fcntl.flock(guard, fcntl.LOCK_EX)
