@@ -41,7 +41,7 @@ from dronecap.datasets.import_scene import (
     scene_bounds,
     visible_points,
 )
-from dronecap.datasets.safe_paths import check_import_memory, inside_folder
+from dronecap.datasets.safe_paths import check_frame_count, check_import_memory, inside_folder
 from dronecap.errors import InputError
 from dronecap.files import sha256_file
 
@@ -165,6 +165,7 @@ def import_transforms(
         meta = metas[path] = _load(path)
         entries += [(fr, meta, path, split) for fr in meta["frames"]]
     first_json = sources[0][0]
+    check_frame_count(len(entries), first_json)
     paths, poses = [], []
     for i, (fr, _, jpath, _) in enumerate(entries):
         try:

@@ -108,7 +108,6 @@ def check_import_memory(paths: list[Path], width: int, source: Path) -> None:
     full image, then RGB + alpha of every stored image) from the first image's header."""
     from dronecap.capture.decode import image_header_size
 
-    check_frame_count(len(paths), source)
     if not paths:
         return
     w0, h0 = image_header_size(paths[0])
