@@ -12,6 +12,7 @@ does an OSError of the storage (full disk, read-only, a folder in the way:
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
 from collections.abc import Callable
@@ -63,6 +64,9 @@ def _top_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "-v", "--verbose", action="store_true", help="progress as a line every second, also in logs"
     )
+    p.add_argument(
+        "--wait", action="store_true", help="wait for another command writing the same output"
+    )
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, stage in STAGES.items():
         sub.add_parser(name, help=stage.help, add_help=False)
@@ -84,8 +88,12 @@ def build_parser(name: str) -> tuple[argparse.ArgumentParser, Stage]:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    while argv and argv[0] in VERBOSITY:
-        _set_verbosity(VERBOSITY[argv.pop(0)])
+    while argv and argv[0] in (*VERBOSITY, "--wait"):
+        flag = argv.pop(0)
+        if flag == "--wait":
+            os.environ["DRONECAP_WAIT"] = "1"  # dronecap.files.output_lock waits
+        else:
+            _set_verbosity(VERBOSITY[flag])
     if not argv or argv[0] not in STAGES:
         _top_parser().parse_args(argv or ["--help"])
         return 2
@@ -100,13 +108,15 @@ def call(stage: Stage, settings_of: Callable[[type], Any]) -> int:
     """Build a command's settings with ``settings_of(Settings)``, check them and run it; the
     exit code, with every user-facing failure as one line on stderr."""
     from dronecap.errors import InputError
+    from dronecap.files import check_command_paths, output_locks
     from dronecap.stage import check
 
     try:
         settings_cls, run = stage.load()
         settings = settings_of(settings_cls)
         check(settings)
-        return int(run(settings) or 0)
+        with output_locks(check_command_paths(stage, settings)):  # one writer per output
+            return int(run(settings) or 0)
     except InputError as err:
         print(f"dronecap {stage.name}: error: {err}", file=sys.stderr)
         return 1

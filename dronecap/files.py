@@ -10,11 +10,15 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import glob
 import hashlib
 import os
 import re
 import shutil
+import sys
+import tempfile
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -50,6 +54,157 @@ def storage_error(err: BaseException) -> str | None:
     return STORAGE_ERRNOS.get(code) if code is not None else None
 
 
+WAIT_ENV = "DRONECAP_WAIT"  # "1": a second writer of an output waits instead of stopping
+_HELD: set[Path] = set()  # lock files this process holds (a nested lock of one is a no-op)
+
+
+def lock_path(path: str | Path) -> Path:
+    """The lock file of output ``path``: named by the hash of its resolved absolute path, in
+    this user's lock folder (so taking a lock never writes into the user's folders, which may
+    not exist yet, be read-only or full)."""
+    key = hashlib.sha256(str(Path(path).resolve()).encode()).hexdigest()[:32]
+    runtime = os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
+    return Path(runtime) / f"dronecap-locks-{os.getuid()}" / f"{key}.lock"
+
+
+@contextlib.contextmanager
+def output_lock(path: str | Path, wait: bool | None = None) -> Iterator[None]:
+    """Hold the lock of output ``path`` (a file or a folder) for the block: an exclusive
+    ``flock`` on its :func:`lock_path`, which is removed again on release.
+
+    A second process writing the same output stops with one line (OutputError), or with
+    ``wait`` (default: the ``DRONECAP_WAIT`` environment variable, set by ``dronecap --wait``)
+    says once that it waits and waits. Re-entrant within a process. The lock dies with its
+    process, so a killed writer never leaves a lock held.
+    """
+    lock = lock_path(path)
+    if lock in _HELD:
+        yield
+        return
+    if wait is None:
+        wait = os.environ.get(WAIT_ENV) == "1"
+    lock.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    fd = _acquire(lock, Path(path), wait)
+    _HELD.add(lock)
+    try:
+        yield
+    finally:
+        _HELD.discard(lock)
+        with contextlib.suppress(OSError):
+            os.unlink(lock)  # still held: a waiter re-checks that its file is the current one
+        os.close(fd)
+
+
+def _acquire(lock: Path, shown: Path, wait: bool) -> int:
+    """An fd holding the flock of ``lock`` (the file currently at that path)."""
+    told = False
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+            if not wait:
+                os.close(fd)
+                raise OutputError(
+                    f"is being written by another dronecap command (pid {holder}): not writing "
+                    "it twice at once; run again when it ends (dronecap --wait waits)",
+                    shown,
+                ) from None
+            if not told:
+                print(f"dronecap: waiting for pid {holder}, which is writing {shown}",
+                      file=sys.stderr, flush=True)  # fmt: skip
+                told = True
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        try:
+            same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:  # not a file its previous holder removed meanwhile
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, str(os.getpid()).encode(), 0)
+            return fd
+        os.close(fd)
+        time.sleep(0.01)
+
+
+# What an output's name says it holds (its conventional name's suffix), and how to recognise it.
+FILE_KINDS = {".h5": "an HDF5 file", ".json": "a JSON file", ".png": "a PNG image"}
+FILE_KINDS |= dict.fromkeys((".mp4", ".mov", ".avi", ".mkv"), "a video")
+
+
+OUTPUT_SETTINGS = ("output", "out")  # the settings that name a command's output
+
+
+def file_kind(path: Path) -> str | None:
+    """Which of :data:`FILE_KINDS` the bytes of ``path`` are (None: none of them)."""
+    with open(path, "rb") as fh:
+        head = fh.read(16)
+    if head.startswith(b"\x89HDF\r\n\x1a\n"):
+        return "an HDF5 file"
+    if head.startswith(b"\x89PNG"):
+        return "a PNG image"
+    if head[4:8] == b"ftyp" or head.startswith((b"RIFF", b"\x1aE\xdf\xa3")):
+        return "a video"
+    if head.lstrip()[:1] in (b"{", b"["):
+        return "a JSON file"
+    return None
+
+
+def check_output_path(out: Path, inputs: list[Path], writes: str | None) -> None:
+    """Refuse, before any work, an output that is one of the command's input files, or an
+    existing non-empty file of another kind than the ``writes`` it will hold (``ingest m.mp4
+    -o m.mp4``, ``split -o some.mp4``)."""
+    if not out.is_file():
+        return
+    if any(p.is_file() and os.path.samefile(p, out) for p in inputs):
+        raise OutputError("is also an input of this command: not writing over it", out)
+    if writes is not None and out.stat().st_size and (kind := file_kind(out)) != writes:
+        raise OutputError(
+            f"holds {kind or 'a file of another kind'} and this command writes {writes}: not "
+            "replacing it (choose another output name, or remove the file)",
+            out,
+        )
+
+
+def check_command_paths(stage: object, settings: object) -> list[Path]:
+    """:func:`check_output_path` of every output of a command (:func:`command_outputs`), its
+    inputs being the settings that name existing files; returns those outputs."""
+    outs = command_outputs(stage, settings)
+    names = [Path(str(o)) for o in getattr(stage, "outputs", ())]
+    inputs = []
+    for name, value in vars(settings).items():
+        if name in OUTPUT_SETTINGS or name == getattr(stage, "folder", None):
+            continue
+        for v in value if isinstance(value, list) else [value]:
+            if isinstance(v, str) and v and Path(v).is_file():
+                inputs.append(Path(v))
+    for i, out in enumerate(outs):
+        writes = FILE_KINDS.get(names[i].suffix) if i < len(names) else None
+        check_output_path(out, inputs, writes)
+    return outs
+
+
+def command_outputs(stage: object, settings: object) -> list[Path]:
+    """The outputs a command's ``settings`` will write: its ``output`` / ``out`` / folder setting
+    when given, else the registry entry ``stage``'s conventional names in its workspace."""
+    names = (*OUTPUT_SETTINGS, getattr(stage, "folder", None))
+    given = [getattr(settings, n) for n in names if n and getattr(settings, n, None)]
+    if given:
+        return [Path(str(v)) for v in dict.fromkeys(given)]
+    workdir = Path(getattr(settings, "workdir", None) or ".")
+    return [workdir / o for o in getattr(stage, "outputs", ()) if "RUN_DIR" not in o]
+
+
+@contextlib.contextmanager
+def output_locks(paths: list[Path], wait: bool | None = None) -> Iterator[None]:
+    """:func:`output_lock` of every path in ``paths`` (in sorted order: no deadlock)."""
+    with contextlib.ExitStack() as stack:
+        for p in sorted({Path(p).absolute() for p in paths}):
+            stack.enter_context(output_lock(p, wait))
+        yield
+
+
 @contextlib.contextmanager
 def atomic_output(
     path: str | Path, replaceable: Callable[[str], bool] | None = None
@@ -72,9 +227,11 @@ def atomic_output(
         raise OutputError("is not a file or folder name to write to", path)
     if final.is_dir() and final.resolve() in (Path.cwd().resolve(), *Path.cwd().resolve().parents):
         raise OutputError("is the current folder or one of its parents: not replacing it", path)
+    stack = contextlib.ExitStack()  # holds the output's lock
     tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
     old = final.with_name(f".{final.name}.old-{os.getpid()}")
     try:
+        stack.enter_context(output_lock(final, wait=True))
         final.parent.mkdir(parents=True, exist_ok=True)
         _remove_stale_temporaries(final)
         yield tmp
@@ -103,6 +260,7 @@ def atomic_output(
     finally:
         with contextlib.suppress(OSError):
             _remove(tmp)
+        stack.close()
 
 
 def _check_foreign(final: Path, new: Path, replaceable: Callable[[str], bool] | None) -> None:

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from dronecap.errors import InputError
-from dronecap.files import atomic_output, sha256_file
+from dronecap.files import atomic_output, output_lock, sha256_file
 from dronecap.pipeline_spec import Pipeline, Stage, substitute
 from dronecap.stages import STAGES
 
@@ -105,6 +105,10 @@ class Runner:
         self.first = ids.index(start) if start else 0
         self.last = ids.index(until) if until else len(ids) - 1
         self.stage_dirs = {sid: self.dir / sid for sid in ids}
+        inside = root.resolve()
+        for d in (self.dir, *self.stage_dirs.values()):
+            if d.is_symlink() or not d.resolve().is_relative_to(inside):
+                raise InputError(f"is a link or leaves the runs folder {root}: not using it", d)
 
     def _plan(self, stage: Stage) -> tuple[dict[str, Any], dict[str, str], str]:
         params = {
@@ -146,7 +150,14 @@ class Runner:
         return bool(changed) and changed <= STAGES[stage.command].extends
 
     def run(self, dry_run: bool = False) -> list[StageResult]:
-        """Run (or with ``dry_run`` only explain) the stages; stops at the first failure."""
+        """Run (or with ``dry_run`` only explain) the stages; stops at the first failure. The
+        pipeline's folder is locked meanwhile: a second run of it stops (or waits) at once."""
+        if dry_run:
+            return self._run(dry_run)
+        with output_lock(self.dir):
+            return self._run(dry_run)
+
+    def _run(self, dry_run: bool) -> list[StageResult]:
         from dronecap.cli import call
         from dronecap.figures import key_figure
         from dronecap.stage import command_line, from_params

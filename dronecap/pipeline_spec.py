@@ -30,10 +30,23 @@ from dronecap.stage import missing_params, param_value, params_table
 from dronecap.stages import STAGES
 
 REF = re.compile(r"\$\{([A-Za-z0-9_.-]+)\}")
+# Pipeline and stage names become folders under the runs folder: letters, digits, '_' and '-'
+# only (no path separator, no '.', '..', absolute path or hidden name), at most 64 characters.
+NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]{0,63}")
 
 
 class SpecError(InputError):
     """A malformed pipelines.yaml; the message carries ``file:line``."""
+
+
+def check_name(kind: str, name: object, at: str) -> str:
+    """``name`` when it is a safe folder name (:data:`NAME`); SpecError at ``at`` otherwise."""
+    if not isinstance(name, str) or not NAME.fullmatch(name):
+        raise SpecError(
+            f"{at}: {kind} name {name!r} is not allowed: use letters, digits, '_' and '-' only "
+            "(it names a folder under the runs folder)"
+        )
+    return name
 
 
 class _LineLoader(yaml.SafeLoader):
@@ -104,7 +117,11 @@ def load_specs(path: str | Path) -> LineDict:
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark else str(path)
-        raise SpecError(f"{where}: invalid YAML: {getattr(err, 'problem', err)}") from None
+        problem = str(getattr(err, "problem", err))
+        tag = re.search(r"for the tag '(?:tag:yaml.org,2002:)?([^']*)'", problem)
+        if tag:
+            problem = f"the tag !!{tag.group(1)} is not allowed: plain data only (nothing was run)"
+        raise SpecError(f"{where}: invalid YAML: {problem}") from None
     if not isinstance(data, dict):
         raise SpecError(f"{path}:1: expected a mapping of pipeline names to pipelines")
     return data
@@ -148,6 +165,7 @@ def build_pipeline(
         raise SpecError(f"{path}: no pipeline {name!r}; pipelines: {', '.join(specs)}")
     spec = specs[name]
     at = f"{path}:{specs.key_lines[name]}"
+    check_name("pipeline", name, at)
     if not isinstance(spec, dict) or not isinstance(spec.get("stages"), dict):
         raise SpecError(f"{at}: pipeline {name!r} needs a 'stages' mapping")
     for key in spec:
@@ -160,6 +178,8 @@ def build_pipeline(
             raise SpecError(f"{at}: pipeline {name!r} has no variable {key!r}; vars: {list(vars_)}")
     vars_.update(var_overrides)
     stages_spec: LineDict = spec["stages"]
+    for stage_id in stages_spec:
+        check_name("stage", stage_id, f"{path}:{stages_spec.key_lines[stage_id]}")
     for stage_id in param_overrides:
         if stage_id not in stages_spec:
             raise SpecError(f"{at}: override names unknown stage {stage_id!r}")

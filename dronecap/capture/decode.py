@@ -26,6 +26,9 @@ from dronecap.errors import InputError
 
 T = TypeVar("T")
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
+# Largest image or video frame decoded, in pixels (DRONECAP_MAX_PIXELS raises it): 64 MP, far
+# above any drone camera, far below a decompression bomb (30000x30000 = 900 MP, 3.6 GB decoded).
+MAX_PIXELS = 64_000_000
 
 
 @dataclass
@@ -81,6 +84,7 @@ class VideoSource:
             expected_frames=count if count > 0 else None,
             codec="".join(chr((fourcc >> 8 * i) & 0xFF) for i in range(4)).strip("\x00") or "?",
         )
+        check_frame_pixels(self.info.width, self.info.height, path)
 
     def frames(self) -> Iterator[DecodedFrame]:
         """Decode every frame in order; stops at the end or at the first undecodable frame."""
@@ -105,6 +109,49 @@ class VideoSource:
             cap.release()
 
 
+def image_header_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file read from its header only (PIL's lazy open: no pixel
+    is decoded). InputError when it is not an image PIL can identify."""
+    from PIL import Image, UnidentifiedImageError
+
+    limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None  # check_frame_pixels decides
+    try:
+        with Image.open(path) as im:  # the header only
+            return int(im.width), int(im.height)
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as err:
+        raise InputError(f"not a readable image: {err}", path) from None
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
+
+
+def check_frame_pixels(width: int, height: int, path: Path) -> None:
+    """Refuse to decode a ``width`` x ``height`` frame beyond :data:`MAX_PIXELS` (or
+    ``DRONECAP_MAX_PIXELS``), or one whose decoded copy would not fit in memory."""
+    from dronecap.datasets.safe_paths import check_memory
+
+    limit = int(os.environ.get("DRONECAP_MAX_PIXELS", MAX_PIXELS))
+    if width * height > limit:
+        raise InputError(
+            f"is {width}x{height} ({width * height / 1e6:.0f} MP), more than the "
+            f"{limit / 1e6:.0f} MP a frame may have (set DRONECAP_MAX_PIXELS to raise it)",
+            path,
+        )
+    check_memory(width * height * 4 * 4, "decoding this frame", "free some memory", path)
+
+
+def read_image(path: Path) -> np.ndarray | None:
+    """cv2.imread of ``path`` (uint8/uint16 [H, W(, C)], None when it does not decode) after
+    checking its header's size with :func:`check_frame_pixels`."""
+    import cv2
+
+    try:
+        w, h = image_header_size(path)
+    except InputError:
+        return None  # no readable header: reported as an image that does not decode
+    check_frame_pixels(w, h, path)
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+
+
 class ImageFolderSource:
     """Read the images of a folder in natural order, timed at ``fps``.
 
@@ -113,7 +160,6 @@ class ImageFolderSource:
     """
 
     def __init__(self, path: Path, fps: float, skip_unreadable: bool = False) -> None:
-        import cv2
 
         self.path = path
         self.skip_unreadable = skip_unreadable
@@ -125,7 +171,7 @@ class ImageFolderSource:
             raise InputError(f"folder holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})", path)
         first = None
         for f in self.files:
-            first = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+            first = read_image(f)
             if first is not None:
                 break
         if first is None:
@@ -142,11 +188,9 @@ class ImageFolderSource:
 
     def frames(self) -> Iterator[DecodedFrame]:
         """Every image in natural order (unreadable ones as ``image=None`` when skipped)."""
-        import cv2
-
         size = (self.info.height, self.info.width)
         for i, f in enumerate(self.files):
-            image = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+            image = read_image(f)
             if image is None and not self.skip_unreadable:
                 raise InputError(
                     f"image {i + 1} of {len(self.files)} does not decode (damaged or not an "

@@ -75,6 +75,9 @@ def parse_numbers(text: str, count: int, kind: type, what: str) -> tuple:
     return values
 
 
+MAX_OUTPUT_SIDE = 4096  # pixels: the largest ingest --size
+
+
 def parse_size(text: str) -> tuple[int, int]:
     """``"160"`` or ``"160x120"`` -> (width, height) in pixels."""
     parts = text.lower().replace("×", "x").split("x")
@@ -83,6 +86,8 @@ def parse_size(text: str) -> tuple[int, int]:
     w, h = (int(p) for p in parts)
     if w < 8 or h < 8:
         raise ValueError(f"output size {w}x{h} is too small (minimum 8x8)")
+    if max(w, h) > MAX_OUTPUT_SIDE:  # larger decodes at ~24 s a frame for no added detail
+        raise ValueError(f"output size {w}x{h} is too large (at most {MAX_OUTPUT_SIDE} a side)")
     return w, h
 
 

@@ -20,6 +20,9 @@ class Settings(Base):
     )
     resolution: int = setting(160, help="stored image width in pixels (default 160)")
     color: str = setting("rgb", choices=("rgb", "gray"), help="stored colour (default rgb)")
+    allow_outside: bool = setting(
+        False, help="read images named outside the source folder ('..', absolute, links out)"
+    )
 
 
 def run(s: Settings) -> int:
@@ -27,9 +30,11 @@ def run(s: Settings) -> int:
     from dronecap import workspace
     from dronecap.datasets.blender import import_blender
     from dronecap.datasets.format import open_dataset
+    from dronecap.datasets.safe_paths import outside_allowed
 
     out = workspace.resolve(s.workdir, s.output, workspace.DATASET)
-    path = import_blender(s.scene_dir, out, resolution=s.resolution, color=s.color)
+    with outside_allowed(s.allow_outside):
+        path = import_blender(s.scene_dir, out, resolution=s.resolution, color=s.color)
     ds = open_dataset(path)
     counts = ", ".join(f"{len(ds.indices(k))} {k}" for k in ("train", "val", "test"))
     lo, hi = ds.aabb

@@ -23,8 +23,10 @@ def run(s: Settings) -> int:
     from dronecap import workspace
     from dronecap.datasets.import_colmap import import_colmap
     from dronecap.datasets.import_scene import check_options, describe
+    from dronecap.datasets.safe_paths import outside_allowed
 
     check_options(s.size, s.color)
     out = workspace.resolve(s.workdir, s.output, workspace.DATASET)
-    print(describe(import_colmap(s.model, s.images, out, size=s.size, color=s.color)))
+    with outside_allowed(s.allow_outside):
+        print(describe(import_colmap(s.model, s.images, out, size=s.size, color=s.color)))
     return 0

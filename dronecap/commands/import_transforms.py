@@ -21,6 +21,9 @@ class ImportOptions(Base):
         choices=("auto", "rgb", "gray"),
         help="stored colour; auto: gray when every image is gray",
     )
+    allow_outside: bool = setting(
+        False, help="read images named outside the source folder ('..', absolute, links out)"
+    )
 
 
 @dataclass(kw_only=True)
@@ -38,8 +41,10 @@ def run(s: Settings) -> int:
     from dronecap import workspace
     from dronecap.datasets.import_scene import check_options, describe
     from dronecap.datasets.import_transforms import import_transforms
+    from dronecap.datasets.safe_paths import outside_allowed
 
     check_options(s.size, s.color)
     out = workspace.resolve(s.workdir, s.output, workspace.DATASET)
-    print(describe(import_transforms(s.source, out, size=s.size, color=s.color)))
+    with outside_allowed(s.allow_outside):
+        print(describe(import_transforms(s.source, out, size=s.size, color=s.color)))
     return 0

@@ -27,8 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
+from dronecap.capture.decode import read_image
 from dronecap.datasets.bounds import carve_aabb, lookat_cube, near_far_from_aabb
 from dronecap.datasets.format import SPLITS, Dataset, Intrinsics, provenance, write_dataset
+from dronecap.datasets.safe_paths import inside_folder
 from dronecap.errors import InputError
 
 LUMA_BT601 = (0.299, 0.587, 0.114)
@@ -190,14 +192,14 @@ def _read_transforms(scene_dir: Path) -> tuple[list[tuple[str, int, dict]], floa
 
 def _image_path(scene_dir: Path, frame: dict) -> Path:
     p = scene_dir / str(frame["file_path"])
-    return p if p.suffix else p.with_name(p.name + ".png")
+    return inside_folder(scene_dir, p if p.suffix else p.with_name(p.name + ".png"))
 
 
 def _read_rgba(path: Path) -> np.ndarray:
     """uint8 [H, W, 4] RGBA of a PNG (alpha 255 when the file has none)."""
     import cv2
 
-    im = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    im = read_image(path)  # its header's size checked first: no decompression bomb
     if im is None:
         raise InputError("missing or unreadable image", path)
     if im.dtype == np.uint16:

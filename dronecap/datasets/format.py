@@ -71,6 +71,7 @@ from dronecap.camera import Camera
 from dronecap.datasets import checks
 from dronecap.datasets.checks import KINDS, SPLITS, describe
 from dronecap.datasets.probe import checksummed_layout, survives_reading
+from dronecap.datasets.safe_paths import hdf5_link_problem
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, require_free_space
 
@@ -397,6 +398,8 @@ def _read_dataset(path: Path, kinds: tuple[str, ...] | None) -> Dataset:
     where = "file structure"
     try:
         with h5py.File(path, "r") as f:
+            if outside := hdf5_link_problem(f):  # a dataset file is read alone (safe_paths.py)
+                raise DatasetError(outside, path)
             if "images" not in f or not isinstance(f["images"], h5py.Dataset):
                 raise DatasetError("images: missing required dataset", path)
             names = ["images", "alpha", "poses", "names", "source_index", "timestamps", "split"]

@@ -26,6 +26,7 @@ from dronecap.datasets.import_scene import (
     resized_camera,
     scene_bounds,
 )
+from dronecap.datasets.safe_paths import inside_folder
 from dronecap.errors import InputError
 
 
@@ -117,7 +118,9 @@ def import_colmap(
     _, c2w, points, seen = model_arrays(rec, names)
     ids = sorted(rec.points3D.keys())
     colors = np.array([rec.points3D[p].color for p in ids], np.uint8).reshape(-1, 3)
-    imgs = read_images([images_dir / n for n in names], size, color, progress)
+    imgs = read_images(
+        [inside_folder(images_dir, images_dir / n) for n in names], size, color, progress
+    )
     if imgs.source_size != (k0.width, k0.height):
         raise InputError(
             f"images are {imgs.source_size[0]}x{imgs.source_size[1]} but the model's camera is "

@@ -41,6 +41,7 @@ from dronecap.datasets.import_scene import (
     scene_bounds,
     visible_points,
 )
+from dronecap.datasets.safe_paths import check_frame_count, check_import_memory, inside_folder
 from dronecap.errors import InputError
 from dronecap.files import sha256_file
 
@@ -164,6 +165,7 @@ def import_transforms(
         meta = metas[path] = _load(path)
         entries += [(fr, meta, path, split) for fr in meta["frames"]]
     first_json = sources[0][0]
+    check_frame_count(len(entries), first_json)
     paths, poses = [], []
     for i, (fr, _, jpath, _) in enumerate(entries):
         try:
@@ -172,10 +174,13 @@ def import_transforms(
                 m = np.vstack([m, [0, 0, 0, 1]])
             if m.shape != (4, 4) or not np.isfinite(m).all():
                 raise ValueError("transform_matrix is not a finite 4x4 matrix")
-            paths.append(image_path(jpath.parent, str(fr["file_path"])))
+            paths.append(
+                inside_folder(jpath.parent, image_path(jpath.parent, str(fr["file_path"])))
+            )
         except (KeyError, TypeError, ValueError) as err:
             raise InputError(f"frame {i}: {err}", jpath) from None
         poses.append(m)
+    check_import_memory(paths, size, first_json)
     imgs = read_images(paths, size, color, progress)
     table, index = _frame_cameras(entries, *imgs.source_size)
     k0 = table[0]

@@ -199,6 +199,9 @@ def shard_dataset(
         horizontal = np.linalg.norm(flat - np.outer(flat @ up, up), axis=1)
         if horizontal.max() <= 1e-9 * max(1.0, np.abs(flat).max()):
             raise InputError("cameras have no azimuth spread around the up axis", in_path)
+        if (distinct := len(np.unique(np.round(az, 6)))) < clients:  # e.g. all at one point
+            msg = f"cameras lie at {distinct} distinct azimuths: too few for {clients} sectors"
+            raise InputError(f"{msg} (each would be 0 degrees wide)", in_path)
         owner, ranges = sector_assignment(az, clients)
     assignment = np.full(ds.n, -1, np.int16)
     assignment[train] = owner

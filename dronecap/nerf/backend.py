@@ -19,6 +19,7 @@ import hashlib
 import os
 import sys
 from pathlib import Path
+from typing import TextIO
 
 from dronecap.cpu import cpu_flags
 from dronecap.errors import InputError
@@ -36,6 +37,7 @@ FALLBACK_NOTICE = (
     "~8x slower (install g++ to get the fast path)"
 )
 BUILD_NOTICE = "dronecap: building C++ kernels (once, ~40 s)"
+WAIT_NOTICE = "dronecap: waiting for another dronecap process building the C++ kernels"
 # DRONECAP_NO_SIMD=1 builds the kernels without their AVX2/AVX-512 paths (a separate cached
 # build): the scalar baseline benchmarks/train_speed.py compares the SIMD paths with.
 NO_SIMD_ENV = "DRONECAP_NO_SIMD"
@@ -86,8 +88,6 @@ def load(name: str):
     Raises whatever the compiler or loader raises when the kernel cannot be built.
     """
     if name not in _loaded:
-        import fcntl
-
         from torch.utils import cpp_extension
 
         source, flags = KERNELS[name][0], _flags(name)
@@ -97,8 +97,8 @@ def load(name: str):
         # go away; a build killed mid-way leaves it behind and every later process hangs. Our
         # flock is released by the OS when its holder dies, so while we hold it no other
         # dronecap process is building and any `lock` file is stale.
-        with open(folder / ".dronecap-build.lock", "w") as guard:
-            fcntl.flock(guard, fcntl.LOCK_EX)
+        with open(folder / ".dronecap-build.lock", "a+") as guard:
+            _take_build_lock(guard)
             (folder / "lock").unlink(missing_ok=True)
             if not (folder / f"dronecap_{name}.so").exists():
                 _say_once(BUILD_NOTICE)
@@ -111,6 +111,24 @@ def load(name: str):
                 verbose=False,
             )
     return _loaded[name]
+
+
+def _take_build_lock(guard: TextIO) -> None:
+    """flock ``guard`` (the build folder's lock file); while another process holds it (building
+    the kernels), say once on stderr that this one waits, and for whom."""
+    import fcntl
+
+    try:
+        fcntl.flock(guard, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        guard.seek(0)
+        holder = guard.read().strip() or "?"
+        _say_once(f"{WAIT_NOTICE} (pid {holder})")
+        fcntl.flock(guard, fcntl.LOCK_EX)
+    guard.seek(0)
+    guard.truncate()
+    guard.write(str(os.getpid()))
+    guard.flush()
 
 
 def check_backend(backend: str) -> None:

@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
-from dronecap.errors import InputError
+from dronecap.errors import InputError, OutputError
 
 CODECS = {"ffv1": "FFV1", "mjpg": "MJPG", "mp4v": "mp4v"}
 
@@ -73,4 +74,26 @@ def write_gray_video(
         finally:
             if writer is not None:
                 writer.release()
+        _check_decodes(tmp, n, path)  # FFmpeg's failed writes (a full disk) are silent
     return n
+
+
+def _check_decodes(tmp: Path, n: int, path: Path) -> None:
+    """OutputError unless video ``tmp`` opens, announces ``n`` frames and its first decodes."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(tmp), cv2.CAP_FFMPEG)
+    try:
+        ok = n == 0 or (
+            cap.isOpened() and int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == n and cap.read()[0]
+        )
+    finally:
+        cap.release()
+    if not ok:
+        why = ": no space left on the device" if _nearly_full(tmp) else " (a full disk?)"
+        raise OutputError(f"cannot write: the video did not come out decodable{why}", path)
+
+
+def _nearly_full(p: Path) -> bool:
+    """True when the filesystem holding ``p`` has less than 1 MB free."""
+    return shutil.disk_usage(p.parent).free < 1 << 20

@@ -172,3 +172,135 @@ def test_federate_refuses_a_run_folder_made_from_other_shards(
     res = run_cli(["federate", *argv, "--deployment"])
     assert res.one_line_error("federate"), res
     assert "other shard contents (client_0.h5, client_1.h5)" in res.err
+
+
+# ----------------------------------------------------------------------------------------------
+# Round 3: files and peers from elsewhere (issue 32). One row per case: command, the input it
+# is given (built in a scratch folder), a fragment of its one error line. Every row must exit 1
+# with that one line, no traceback, nothing executed (no MARKER) and nothing left behind.
+# ----------------------------------------------------------------------------------------------
+
+
+def _video(tmp: Path, name: str = "m.mp4") -> Path:
+    """A file whose bytes say MP4 (the checks refuse it before decoding anything)."""
+    (tmp / name).write_bytes(b"\0\0\0\x18ftypmp42" + bytes(64))
+    return tmp / name
+
+
+def _evil_checkpoint(tmp: Path) -> Path:
+    import os
+
+    import torch
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {tmp / 'MARKER'}",))
+
+    (tmp / "run").mkdir()
+    torch.save({"version": 1, "field": Payload()}, tmp / "run" / "checkpoint.pt")
+    return tmp / "run"
+
+
+def _transforms(tmp: Path, file_paths: list[str]) -> Path:
+    import json
+
+    import cv2
+
+    scene = tmp / "scene"
+    scene.mkdir()
+    cv2.imwrite(str(scene / "img.png"), np.full((12, 16, 3), 128, np.uint8))
+    frames = [{"file_path": p, "transform_matrix": np.eye(4).tolist()} for p in file_paths]
+    (scene / "transforms.json").write_text(json.dumps({"fl_x": 20.0, "frames": frames}))
+    return scene
+
+
+def _fifo_scene(tmp: Path) -> Path:
+    import os
+
+    scene = _transforms(tmp, ["img.png", "pipe.png"])
+    os.mkfifo(scene / "pipe.png")
+    return scene
+
+
+def _bomb_folder(tmp: Path) -> Path:
+    from tests.reliability.test_limits import bomb_png
+
+    (tmp / "cap").mkdir()
+    bomb_png(tmp / "cap" / "a.png")
+    return tmp / "cap"
+
+
+def _pipelines(tmp: Path, text: str) -> Path:
+    (tmp / "p.yaml").write_text(text)
+    return tmp / "p.yaml"
+
+
+def _linked(files: dict[str, Path], tmp: Path) -> Path:
+    import h5py
+
+    path = tmp / "linked.h5"
+    shutil.copy(files["dataset"], path)
+    with h5py.File(path, "a") as f:
+        f["extra/leak"] = h5py.ExternalLink("/etc/passwd", "/")
+    return path
+
+
+def _one_point(files: dict[str, Path], tmp: Path) -> Path:
+    ds = open_dataset(files["dataset"])
+    ds.poses[:, :3, 3] = ds.poses[0, :3, 3]
+    return write_dataset(tmp / "one_point.h5", ds)
+
+
+_SIM = "{command: simulate, params: {scene: corridor, frames: 3}}"
+_TAG = "p:\n  stages:\n    s: {command: simulate, params: {scene: !!python/object/apply:os.system"
+HOSTILE: list[tuple[str, str, Callable[[dict[str, Path], Path], list[str]], str]] = [
+    ("render", "malicious checkpoint", lambda f, t: [str(_evil_checkpoint(t)), "--dataset",
+     str(f["dataset"])], "refusing to load"),
+    ("eval", "malicious checkpoint", lambda f, t: [str(_evil_checkpoint(t)), "--dataset",
+     str(f["dataset"])], "refusing to load"),
+    ("export-geometry", "malicious checkpoint", lambda f, t: [str(_evil_checkpoint(t)),
+     "--dataset", str(f["dataset"])], "python -m dronecap.nerf.checkpoint --trust"),
+    ("cost", "malicious checkpoint", lambda f, t: [str(_evil_checkpoint(t))], "refusing to load"),
+    ("run", "stage ../../victim", lambda f, t: ["p", "--file", str(_pipelines(t, f"p:\n  stages:"
+     f"\n    '../../victim': {_SIM}\n")), "--runs", str(t / "runs")], "stage name '../../victim'"),
+    ("run", "pipeline ../x", lambda f, t: ["../x", "--file", str(_pipelines(t, f"'../x':\n  "
+     f"stages:\n    s: {_SIM}\n")), "--runs", str(t / "runs")], "pipeline name '../x'"),
+    ("run", "python tag", lambda f, t: ["p", "--file", str(_pipelines(t, _TAG + " ['touch "
+     f"{t}/MARKER'], frames: 3}}}}\n")), "--runs", str(t / "runs")], "is not allowed"),
+    ("ingest", "-o the input video", lambda f, t: [str(_video(t)), "-o", str(t / "m.mp4")],
+     "is also an input of this command"),
+    ("split", "-o an existing video", lambda f, t: [str(f["posed"]), "-o", str(_video(t))],
+     "holds a video and this command writes an HDF5 file"),
+    ("split", "-o the input", lambda f, t: [str(shutil.copy(f["posed"], t / "p.h5")), "-o",
+     str(t / "p.h5")], "is also an input of this command"),
+    ("ingest", "--size 6000", lambda f, t: [str(_video(t)), "-o", str(t / "f.h5"), "--size",
+     "6000"], "is too large"),
+    ("ingest", "image bomb", lambda f, t: [str(_bomb_folder(t)), "-o", str(t / "f.h5")],
+     "30000x30000 (900 MP)"),
+    ("import-transforms", "file_path ../x.png", lambda f, t: [str(_transforms(t, ["img.png",
+     "../x.png"])), "-o", str(t / "o.h5")], "leaves the folder"),
+    ("import-transforms", "absolute file_path", lambda f, t: [str(_transforms(t, ["img.png",
+     "/etc/hostname"])), "-o", str(t / "o.h5")], "leaves the folder"),
+    ("import-transforms", "FIFO as an image", lambda f, t: [str(_fifo_scene(t)), "-o",
+     str(t / "o.h5")], "not a regular file"),
+    ("import-transforms", "50 000 entries", lambda f, t: [str(_transforms(t, ["img.png"] *
+     50_000)), "-o", str(t / "o.h5")], "lists 50000 frames"),
+    ("split", "HDF5 external link", lambda f, t: [str(_linked(f, t)), "-o", str(t / "o.h5")],
+     "extra/leak: an external link"),
+    ("shard", "cameras at one point", lambda f, t: [str(_one_point(f, t)), "--scheme", "sector",
+     "-o", str(t / "shards")], "distinct azimuths"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("command", "name", "argv", "message"), HOSTILE, ids=[f"{c[0]}: {c[1]}" for c in HOSTILE]
+)
+def test_hostile_catalogue(small_files, tmp_path: Path, command, name, argv, message) -> None:
+    args = argv(small_files, tmp_path)
+    before = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if not p.is_fifo()}
+    res = run_cli([command, *args])
+    assert res.one_line_error(command), res
+    assert res.code == 1 and message in res.err.splitlines()[-1], res.err
+    assert not (tmp_path / "MARKER").exists()
+    after = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if not p.is_fifo()}
+    assert after == before, f"written: {sorted(set(after.items()) ^ set(before.items()))}"

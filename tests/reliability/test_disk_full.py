@@ -179,3 +179,13 @@ def test_export_transforms_onto_a_full_disk(big_posed: Path, small_fs: Path) -> 
     res = cli("export-transforms", str(big_posed), "-o", str(small_fs / "tr"))
     assert_one_line(res, "export-transforms", "no space")
     assert list(small_fs.iterdir()) == []
+
+
+def test_simulate_on_a_full_disk_leaves_no_video(small_fs: Path) -> None:
+    """FFmpeg's writes fail silently on a full disk: the video is checked before it is put in
+    place, so no undecodable flight.mp4 is left."""
+    res = cli("simulate", "--frames", "150", "-o", str(small_fs / "flight.mp4"))
+    assert res.returncode == 1, res.stderr
+    assert "no space left on the device" in res.stderr, res.stderr
+    assert not (small_fs / "flight.mp4").exists()
+    assert not [p for p in small_fs.iterdir() if ".tmp-" in p.name]
