@@ -21,7 +21,11 @@ class Settings(TorchSettings, ProgressSettings):
     orbit: int | None = setting(
         None, minimum=1, metavar="N", help="render N views on a circle instead"
     )
-    mp4: bool = setting(False, help="also write the frames as video.mp4")
+    mp4: bool = setting(
+        False,
+        help="also write the frames as a video browsers play: H.264 video.mp4 when OpenCV has "
+        "the encoder, else animated video.webp (or .gif)",
+    )
     fps: int = setting(24, minimum=1, maximum=240, help="video frame rate")
     dataset: str | None = setting(None, help="dataset.h5 (default: the one the run was trained on)")
     out: str | None = setting(None, help="output folder (default: RUN_DIR/render)")
@@ -35,7 +39,7 @@ def run(s: Settings) -> int:
     from dronecap.cpu import check_threads, use_torch_threads
     from dronecap.errors import InputError
     from dronecap.nerf.evaluate import test_views
-    from dronecap.nerf.outputs import orbit_poses, write_mp4, write_png
+    from dronecap.nerf.outputs import orbit_poses, write_png, write_video
     from dronecap.nerf.run_dir import open_run
     from dronecap.progress import progress_bar
 
@@ -62,7 +66,6 @@ def run(s: Settings) -> int:
         img = trainer.render(pose, cam)
         write_png(out / f"{name}.png", img)
         frames.append(img)
-    if s.mp4:
-        write_mp4(out / "video.mp4", frames, s.fps)
-    print(f"{out}: {len(frames)} views" + (" + video.mp4" if s.mp4 else ""))
+    video = write_video(out / "video", frames, s.fps) if s.mp4 else None
+    print(f"{out}: {len(frames)} views" + (f" + {video.name}" if video else ""))
     return 0

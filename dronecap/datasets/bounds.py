@@ -34,6 +34,77 @@ def lookat_point(poses: np.ndarray) -> np.ndarray:
     return point
 
 
+CONVERGED_SPREAD = 0.05  # smallest eigenvalue of the mean projector off the optical axes
+FORWARD_DEPTH = 2.0  # depth seen by a forward capture without points, x its camera path extent
+
+
+def view_centres(poses: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """Each camera's view centre: the point of its optical axis (in front of it) closest to
+    ``point``.
+
+    Args:
+        poses: float64 [N, 4, 4] camera-to-world, OpenCV axes.
+        point: float64 [3], e.g. :func:`lookat_point`.
+
+    Returns:
+        float64 [N, 3], scene units.
+    """
+    o = poses[:, :3, 3]
+    d = poses[:, :3, 2] / np.linalg.norm(poses[:, :3, 2], axis=1, keepdims=True)
+    t = np.maximum(((point - o) * d).sum(1), 0.0)
+    return o + t[:, None] * d
+
+
+def converging_point(poses: np.ndarray, intrinsics: Intrinsics) -> np.ndarray | None:
+    """The look-at point when the optical axes converge on it, else None.
+
+    They converge when the axes spread (the mean projector off the axes has no eigenvalue
+    below ``CONVERGED_SPREAD``: parallel axes of a forward flight give ~0) and the point lies in
+    front of at least half of the cameras, inside their images.
+    """
+    d = poses[:, :3, 2] / np.linalg.norm(poses[:, :3, 2], axis=1, keepdims=True)
+    proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    if np.linalg.eigvalsh(proj.mean(0))[0] < CONVERGED_SPREAD:
+        return None
+    c = lookat_point(poses)
+    cam = np.einsum("nji,nj->ni", poses[:, :3, :3], c - poses[:, :3, 3])  # [N, 3] camera axes
+    k = intrinsics
+    z = np.where(cam[:, 2] > 0, cam[:, 2], 1.0)
+    u, v = k.fx * cam[:, 0] / z + k.cx, k.fy * cam[:, 1] / z + k.cy
+    seen = (cam[:, 2] > 0) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
+    return c if seen.mean() >= 0.5 else None
+
+
+def coverage_points(poses: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, str]:
+    """Points whose box is what the views cover, for a scene without sparse points.
+
+    When the optical axes converge (:func:`converging_point`: an object capture), the corners of
+    the look-at cube (:func:`lookat_cube`) and every camera's view centre; otherwise (a forward
+    capture) the frusta from each camera centre to ``FORWARD_DEPTH`` times the extent of the
+    camera path (the longest side of the camera centres' box): the corners of each frustum.
+
+    Returns:
+        (float64 [M, 3] points in the poses' frame, a phrase saying what they are).
+    """
+    c = converging_point(poses, intrinsics)
+    if c is not None:
+        cube = lookat_cube(poses, intrinsics)
+        corners = np.stack(np.meshgrid(*cube.T, indexing="ij"), -1).reshape(8, 3)
+        pts = np.concatenate([corners, view_centres(poses, c)])
+        return pts, "where the view axes converge (look-at cube and view centres)"
+    o = poses[:, :3, 3]
+    extent = float((o.max(0) - o.min(0)).max())
+    if extent <= 0:
+        raise ValueError("the cameras neither converge on a point nor move")
+    depth = FORWARD_DEPTH * extent
+    k = intrinsics
+    uv = np.array([[0, 0], [k.width, 0], [0, k.height], [k.width, k.height]], float)
+    rays = np.concatenate([(uv - [k.cx, k.cy]) / [k.fx, k.fy], np.ones((4, 1))], 1)  # z = 1
+    far = o[:, None] + depth * np.einsum("nij,kj->nki", poses[:, :3, :3], rays)  # [N, 4, 3]
+    pts = np.concatenate([o, far.reshape(-1, 3)])
+    return pts, f"the frusta to depth {FORWARD_DEPTH:g} x the camera path extent (forward capture)"
+
+
 def lookat_cube(poses: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
     """Fallback bounds: the cube around the common look-at point that every camera sees.
 

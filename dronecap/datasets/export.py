@@ -132,6 +132,17 @@ def ngp_keys(cam: dict[str, Any], aabb: np.ndarray | None) -> dict[str, Any]:
     return out
 
 
+def nerfstudio_args(aabb: np.ndarray | None) -> str:
+    """The ``nerfstudio-data`` dataparser options under which nerfstudio keeps the exported
+    frame: no re-orientation, no re-centring, no rescaling (its defaults ``up``, ``poses`` and
+    auto-scale move the poses), and a ``--scene-scale`` whose box [-s, s]^3 holds the AABB."""
+    opts = "--orientation-method none --center-method none --auto-scale-poses False"
+    if aabb is None:
+        return opts
+    s = float(np.abs(np.asarray(aabb, float)).max())
+    return f"{opts} --scene-scale {np.ceil(s * 1000) / 1000:g}"
+
+
 def centred_pinhole(k: Intrinsics) -> bool:
     """True when ``k`` is a Blender/NeRF Synthetic camera (camera_angle_x says it all)."""
     return k.is_pinhole and k.fx == k.fy and k.cx == k.width / 2 and k.cy == k.height / 2
@@ -197,6 +208,11 @@ def export_transforms(
         for i, (f, m) in enumerate(zip(files, gl, strict=True))
     ]
     lists, notes = split_lists(ds, files)
+    common["dronecap_nerfstudio_args"] = nerfstudio_args(ds.aabb)
+    notes.append(
+        f"nerfstudio keeps this frame and box with: ns-train nerfacto --data {out_dir} "
+        f"nerfstudio-data {common['dronecap_nerfstudio_args']}"
+    )
     meta = {**common, "frames": frames, **{f"{s}_filenames": v for s, v in lists.items()}}
     problem = ngp_problem(cam)
     if problem and lists:

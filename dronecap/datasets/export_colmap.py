@@ -12,6 +12,9 @@ dataset's poses (camera-from-world in OpenCV axes, which is COLMAP's convention)
 - else from points stored in the dataset (``extra/points3d_xyz`` float [P, 3] in the scene
   frame, ``extra/points3d_rgb`` uint8 [P, 3]), without observations;
 - else none.
+
+Points whose colours are all black (an SfM step that extracted no colour) take the frames'
+colour (:func:`colour_from_frames`).
 """
 
 from __future__ import annotations
@@ -78,7 +81,36 @@ def scene_model(ds: Dataset, names: list[str], sparse_model: str | Path | None) 
         rgb = np.asarray(ds.extra.get(POINTS_RGB, np.zeros_like(xyz)), np.uint8).reshape(-1, 3)
         for p, c in zip(xyz, rgb, strict=True):
             rec.add_point3D(p, pycolmap.Track(), c)
+    if rec.num_points3D() and not any(pt.color.any() for pt in rec.points3D.values()):
+        colour_from_frames(rec, ds)
     return rec
+
+
+def colour_from_frames(rec: Any, ds: Dataset) -> None:
+    """Give the points of ``rec`` (built by :func:`scene_model`, image i + 1 = frame i) the
+    frames' colour (gray replicated to RGB): the median over the pixels that observe each point
+    (its track's keypoints), or, for a point without observations, over the frames it projects
+    into (in front of the camera, inside the image). Points no frame sees stay black."""
+    k = ds.intrinsics
+    h, w = ds.hw
+    for pid, point in rec.points3D.items():
+        samples = []
+        for el in point.track.elements:
+            uv = rec.images[el.image_id].points2D[el.point2D_idx].xy
+            samples.append((el.image_id - 1, uv))
+        if not samples:
+            cam = (point.xyz - ds.poses[:, :3, 3])[:, None, :] @ ds.poses[:, :3, :3]  # [N, 1, 3]
+            cam = cam[:, 0]
+            front = np.flatnonzero(cam[:, 2] > 1e-9)
+            uv = k.project(cam[front]) if len(front) else np.zeros((0, 2))
+            samples = list(zip(front, uv, strict=True))
+        vals = []
+        for i, (u, v) in samples:
+            if 0 <= u < w and 0 <= v < h:
+                vals.append(ds.images[i][int(v), int(u)])
+        if vals:
+            c = np.median(np.stack(vals), 0).round().astype(np.uint8)
+            rec.points3D[pid].color = np.repeat(c, 3) if c.size == 1 else c
 
 
 def _matched_model(ds: Dataset, path: str | Path) -> tuple[Any, dict[int, int]]:

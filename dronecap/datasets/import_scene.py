@@ -120,6 +120,8 @@ def scene_bounds(
     seen: list[np.ndarray],
     keep_aabb: np.ndarray | None = None,
     masks: tuple[np.ndarray, Intrinsics, np.ndarray] | None = None,
+    camera: Intrinsics | None = None,
+    outer: tuple[np.ndarray, str] | None = None,
 ) -> Bounds:
     """Normalise and bound a posed scene as SfM does for a captured flight.
 
@@ -132,10 +134,16 @@ def scene_bounds(
         masks: (alpha uint8 [M, H, W], a pinhole camera, the M view indices) of an object
             capture's training views: after the normalisation the AABB is carved from them as
             import-blender does (:func:`bounds.carve_aabb`) when carving bounds the object.
+        camera: the stored camera; with it, a scene without sparse points is bounded by what
+            its views cover (:func:`bounds.coverage_points`), never by the camera centres.
+        outer: (a scene box the source declares as an outer limit, e.g. instant-ngp's
+            ``aabb_scale`` box, its description): poses stay in the source frame and the AABB
+            is what the views (or points) cover, clipped to it.
 
     Raises:
         InputError: cameras whose up vectors cancel out (no up direction to orient by).
     """
+    from dronecap.datasets.bounds import coverage_points
     from dronecap.datasets.normalize import (
         NormalizeSettings,
         apply_to_points,
@@ -151,14 +159,20 @@ def scene_bounds(
         inl = statistical_inliers(points, st.nb_neighbors, st.std_ratio)
         nf = near_far(c2w, a, [points[s] for s in seen])
         return Bounds(c2w, points, inl, a, nf, np.eye(4), "the source's scene box")
+    if outer is not None:
+        return _inside_outer(c2w, points, seen, outer, camera)
     try:
-        norm = normalize_scene(c2w, points)
+        if not len(points) and camera is not None:
+            cover, how = coverage_points(c2w, camera)
+            norm = normalize_to(c2w, cover)
+        else:
+            norm = normalize_scene(c2w, points)
+            how = "sparse points and cameras" if len(points) else "camera centres (no points)"
     except ValueError as err:
         raise InputError(f"cannot orient the scene: {err}") from None
     poses = apply_to_poses(norm.matrix, c2w)
     pts = apply_to_points(norm.matrix, points)
     aabb = norm.aabb
-    how = "sparse points and cameras" if len(points) else "camera centres (no sparse points)"
     if masks is not None:
         from dronecap.datasets.bounds import carve_aabb
 
@@ -168,6 +182,67 @@ def scene_bounds(
             aabb, how = carved, "alpha carving"
     nf = near_far(poses, aabb, [pts[s] for s in seen])
     return Bounds(poses, pts, norm.inliers, aabb, nf, norm.matrix, how)
+
+
+def normalize_to(c2w: np.ndarray, cover: np.ndarray) -> Any:
+    """The similarity and AABB that bound the points ``cover`` [M, 3] (what the views cover),
+    oriented as SfM orients a flight (up from the cameras, yaw to the points' main axis) and
+    scaled to a longest half side of 1, with SfM's margin; camera centres are not added.
+
+    Returns:
+        :class:`dronecap.sfm.normalize.Normalization` (no sparse points, so no inliers).
+    """
+    from dronecap.sfm.normalize import (
+        Normalization,
+        NormalizeSettings,
+        up_rotation,
+        yaw_to_main_axis,
+    )
+
+    rot = up_rotation(c2w)
+    rot = yaw_to_main_axis(cover @ rot.T) @ rot
+    r = cover @ rot.T
+    lo, hi = r.min(0), r.max(0)
+    centre, half = (lo + hi) / 2, float((hi - lo).max()) / 2
+    scale = 1.0 / half
+    m = np.eye(4)
+    m[:3, :3] = scale * rot
+    m[:3, 3] = -scale * centre
+    pad = NormalizeSettings().margin * 2.0
+    aabb = np.stack([scale * (lo - centre) - pad, scale * (hi - centre) + pad])
+    return Normalization(matrix=m, aabb=aabb, inliers=np.zeros(0, bool))
+
+
+def _inside_outer(
+    c2w: np.ndarray,
+    points: np.ndarray,
+    seen: list[np.ndarray],
+    outer: tuple[np.ndarray, str],
+    camera: Intrinsics | None,
+) -> Bounds:
+    """Bounds in the source frame: what the points (else the views) cover, clipped to the
+    source's declared outer box (see :func:`scene_bounds`)."""
+    from dronecap.datasets.bounds import coverage_points
+    from dronecap.sfm.normalize import NormalizeSettings, near_far, robust_box, statistical_inliers
+
+    box, what = outer
+    st = NormalizeSettings()
+    inl = statistical_inliers(points, st.nb_neighbors, st.std_ratio)
+    if inl.sum() >= st.min_view_points:
+        cover, how = robust_box(points[inl], st.percentile), "sparse points"
+    elif camera is not None:
+        cover, how = coverage_points(c2w, camera)
+    else:
+        cover, how = box, what
+    lo, hi = cover.min(0), cover.max(0)
+    pad = st.margin * float((hi - lo).max())
+    aabb = np.stack([np.maximum(lo - pad, box[0]), np.minimum(hi + pad, box[1])])
+    if not (aabb[1] > aabb[0]).all():
+        aabb, how = box, f"{what} (the views cover none of it)"
+    else:
+        how = f"{how}, inside {what}"
+    nf = near_far(c2w, aabb, [points[s] for s in seen])
+    return Bounds(c2w, points, inl, aabb, nf, np.eye(4), how)
 
 
 def imported_dataset(

@@ -194,7 +194,8 @@ def import_transforms(
     if imgs.alpha is not None and k.is_pinhole:  # an object capture: carve as import-blender
         views = np.flatnonzero(split == SPLITS["train"])
         masks = (imgs.alpha[views], k, views)
-    b = scene_bounds(c2w, points, visible_points(c2w, k, points), declared, masks)
+    outer = None if declared is not None else ngp_box(top, first_json)
+    b = scene_bounds(c2w, points, visible_points(c2w, k, points), declared, masks, k, outer)
     norm = b.normalization
     if declared is not None and "applied_transform" in top:
         norm = np.vstack([np.asarray(top["applied_transform"], float), [0, 0, 0, 1]])
@@ -289,3 +290,31 @@ def _declared_box(meta: dict, jpath: Path) -> np.ndarray | None:
     if a.shape != (2, 3) or not np.isfinite(a).all() or not (a[1] > a[0]).all():
         raise InputError(f"aabb must be [[min x,y,z], [max x,y,z]], found {meta['aabb']}", jpath)
     return a
+
+
+NGP_SCALE, NGP_OFFSET = 0.33, (0.5, 0.5, 0.5)  # instant-ngp's defaults for "scale", "offset"
+
+
+def ngp_box(meta: dict, jpath: Path) -> tuple[np.ndarray, str] | None:
+    """instant-ngp's scene box in the file's frame, or None when ``aabb_scale`` is absent.
+
+    instant-ngp maps a file position p to p' = P(p) * scale + offset, P the cyclic axis
+    permutation (x, y, z) -> (y, z, x), and models the cube of side ``aabb_scale`` centred on
+    (0.5, 0.5, 0.5) (the unit cube [0, 1]^3 when 1); ``colmap2nerf.py`` puts the cameras'
+    look-at point at the origin and their mean distance at 4. So the box is centred on
+    P^-1((0.5 - offset) / scale) with half side aabb_scale / (2 scale): [-6, 6]^3 for
+    aabb_scale 4 with the defaults.
+    """
+    if "aabb_scale" not in meta:
+        return None
+    try:
+        a = float(meta["aabb_scale"])
+        scale = float(meta.get("scale", NGP_SCALE))
+        offset = np.asarray(meta.get("offset", NGP_OFFSET), float).reshape(3)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"aabb_scale / scale / offset: {err}", jpath) from None
+    if not (a > 0 and scale > 0 and np.isfinite(offset).all()):
+        raise InputError(f"aabb_scale {a} and scale {scale} must be positive", jpath)
+    centre = np.roll((0.5 - offset) / scale, 1)  # ngp (y, z, x) back to the file's (x, y, z)
+    half = a / (2 * scale)
+    return np.stack([centre - half, centre + half]), f"the file's aabb_scale {a:g} box"

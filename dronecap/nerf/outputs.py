@@ -71,24 +71,39 @@ def orbit_poses(poses: np.ndarray, centre: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: int = 24) -> Path:
-    """Write float frames [H, W, C] in [0, 1] as an MP4 (mp4v), atomically."""
+def write_video(stem: str | Path, frames: Sequence[np.ndarray], fps: int = 24) -> Path:
+    """Write float frames [H, W, C] in [0, 1] as a video a browser plays, atomically: H.264 in
+    ``STEM.mp4`` when OpenCV's FFmpeg has the encoder (fourcc avc1), else an animated WebP
+    ``STEM.webp`` (Pillow, lossless), else an animated ``STEM.gif``. Returns the path written.
+
+    MPEG-4 Part 2 (mp4v), which every OpenCV build writes, is not used: browsers do not play it.
+    """
     import cv2
 
-    path = Path(path)
+    stem = Path(stem)
+    u8 = [to_uint8(f) for f in frames]
+    rgb = [np.repeat(f, 3, axis=2) if f.shape[2] == 1 else f for f in u8]
+    h, w = rgb[0].shape[:2]
+    path = stem.with_suffix(".mp4")
     tmp = path.with_name(f".{path.stem}.partial-{os.getpid()}{path.suffix}")
-    h, w = frames[0].shape[:2]
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-    try:
-        for f in frames:
-            u8 = to_uint8(f)
-            writer.write(
-                u8[..., ::-1].copy() if u8.shape[2] == 3 else cv2.cvtColor(u8, cv2.COLOR_GRAY2BGR)
-            )
-    finally:
-        writer.release()
-    if not tmp.exists() or tmp.stat().st_size == 0:
-        tmp.unlink(missing_ok=True)
-        raise RuntimeError(f"OpenCV could not write an MP4 video to {path}")
-    os.replace(tmp, path)
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"avc1"), fps, (w, h))
+    if writer.isOpened():
+        try:
+            for f in rgb:
+                writer.write(f[..., ::-1].copy())
+        finally:
+            writer.release()
+        if tmp.exists() and tmp.stat().st_size > 0:
+            os.replace(tmp, path)
+            return path
+    tmp.unlink(missing_ok=True)
+    from PIL import Image, features
+
+    path = stem.with_suffix(".webp" if features.check("webp") else ".gif")
+    images = [Image.fromarray(f) for f in rgb]
+    with atomic_output(path) as out:
+        extra = {"lossless": True} if path.suffix == ".webp" else {}
+        ms = round(1000 / fps)
+        images[0].save(out, format=path.suffix[1:].upper(), save_all=True,
+                       append_images=images[1:], duration=ms, loop=0, **extra)  # fmt: skip
     return path
