@@ -7,9 +7,10 @@ Variants, each a whole federation from the same seed and pretraining schedule:
 - ``fp16``: every array whole in fp16 (the reference exchange);
 - ``q8``: every array's change 8-bit with per-block scales, all rows;
 - ``q8 r10``: 8-bit, only the 10 % most changed hash-table rows (error feedback);
-- ``q4 r5``: 4-bit, 5 % of the rows;
-- ``q4 r5 vis``: the same, rows averaged over the drones that sent them (visibility);
-- ``q4 r5 vis M``: the same with a FedAvgM server step (lr 2, momentum 0.5);
+- ``q4 r3``: 4-bit, 3 % of the rows; ``q4 r3 M``: the same with a FedAvgM server step
+  (lr 2, momentum 0.5);
+- ``q4 r3 vis M``: the same, rows averaged over the drones that sent them (visibility): the
+  default of ``dronecap federate``;
 - ``fp16 M``: whole fp16 arrays with that server step;
 
 plus a centralized model on the union of the shards with the same step budget. Bytes are what
@@ -45,14 +46,14 @@ LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
 RESULTS = REPO / "benchmarks" / "results"
 VARIANTS: dict[str, dict] = {  # in the order they run: the reference and the default first
     "fp16": dict(quant_bits=0),
-    "q4 r5 vis M": dict(
-        quant_bits=4, sparse_rows=0.05, visibility=True, server_lr=2.0, server_momentum=0.5
+    "q4 r3 vis M": dict(
+        quant_bits=4, sparse_rows=0.03, visibility=True, server_lr=2.0, server_momentum=0.5
     ),
-    "q4 r5": dict(quant_bits=4, sparse_rows=0.05),
-    "q4 r5 vis": dict(quant_bits=4, sparse_rows=0.05, visibility=True),
+    "fp16 M": dict(quant_bits=0, server_lr=2.0, server_momentum=0.5),
+    "q4 r3 M": dict(quant_bits=4, sparse_rows=0.03, server_lr=2.0, server_momentum=0.5),
+    "q4 r3": dict(quant_bits=4, sparse_rows=0.03),
     "q8": dict(quant_bits=8, sparse_rows=1.0),
     "q8 r10": dict(quant_bits=8, sparse_rows=0.10),
-    "fp16 M": dict(quant_bits=0, server_lr=2.0, server_momentum=0.5),
 }
 
 

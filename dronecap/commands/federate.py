@@ -45,11 +45,11 @@ class Settings(Base):
         "error feedback; 0: whole arrays in --transfer-dtype (default 4)",
     )
     sparse_rows: float = setting(
-        0.05,
+        0.03,
         minimum=1e-4,
         maximum=1.0,
         help="with --quant-bits: fraction of hash-table rows a drone sends, the most changed "
-        "(default 0.05)",
+        "(default 0.03)",
     )
     plain_average: bool = setting(
         False,

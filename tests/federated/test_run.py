@@ -145,7 +145,7 @@ def test_cli_interrupted_run_resumes_from_last_round(lego_h5, tmp_path):
     out = tmp_path / "fed"
     args = [str(lego_h5), "--clients", "2", "--scheme", "sector", "--preset", "test"]
     args += ["--pretrain", "12", "--local-steps", "6", "--rounds", "3", "--eval-views", "1"]
-    args += ["--transfer-dtype", "fp16", "--compress", "--server-lr", "1.5"]
+    args += ["--transfer-dtype", "fp16", "--compress", "--quant-bits", "0", "--server-lr", "1.5"]
     args += ["--server-momentum", "0.5", "--out", str(out)]
     # first attempt: stopped hard (whole process group) once round 1 is recorded
     proc = _federate(args, start_new_session=True)
