@@ -198,6 +198,7 @@ class DroneFedAvg(FedAvgM):
         from dronecap.federated.checks import screen
 
         failed = self.last_round["failed"]
+        base = self.base or from_record(self.current_arrays)
         models: dict[int, dict[str, np.ndarray]] = {}
         masks: dict[int, dict[str, np.ndarray]] = {}
         claimed: dict[int, float] = {}
@@ -208,13 +209,12 @@ class DroneFedAvg(FedAvgM):
                 continue
             self.last_round["bytes_up"][node] = payload_bytes(msg.content)
             try:
-                models[node], masks[node] = decode_reply(
-                    msg.content[self.arrayrecord_key], self.base
-                )
-                claimed[node] = float(msg.content["metrics"][self.weighted_by_key])
+                count = float(msg.content["metrics"][self.weighted_by_key])
+                model, mask = decode_reply(msg.content[self.arrayrecord_key], base)
             except (KeyError, TypeError, ValueError) as err:
                 failed[node] = f"unreadable update: {err}"
-        base = self.base or from_record(self.current_arrays)
+                continue
+            models[node], masks[node], claimed[node] = model, mask, count
         known = {n: float(self.known_examples.get(n, claimed[n])) for n in models}
         failed.update(screen(models, base, claimed, known))
         ok = [n for n in models if n not in failed]

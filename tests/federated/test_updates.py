@@ -130,18 +130,22 @@ def test_strategy_averages_the_honest_drones_and_logs_the_others(server_task):
     x0 = {"model/" + TABLE: rng.normal(size=(50, 2)).astype(np.float32)}
     strategy = DroneFedAvg()
     strategy.resume(x0, {})
-    strategy.known_examples = {1: 25, 2: 25, 3: 25, 4: 25}
+    strategy.known_examples = {1: 25, 2: 25, 3: 25, 4: 25, 5: 25}
     local = {TABLE: x0["model/" + TABLE] + 0.1}
     sparse, _ = encode_update(local, {TABLE: x0["model/" + TABLE]}, {}, rows=1.0, bits=8)
     bad = pack_update({TABLE: np.full((50, 2), np.nan, np.float32)}, None)
+    s = sparse[TABLE]
+    truncated = Array(dtype=s.dtype, shape=tuple(s.shape), stype=s.stype, data=s.data[:-4])
     replies = [
         _reply(1, ArrayRecord({"model/" + TABLE: sparse[TABLE]}), 25),
         _reply(2, to_record(bad), 25),
         _reply(3, to_record(pack_update(local, None)), 10**9),
         _reply(4, to_record(pack_update({TABLE: np.zeros((3, 2), np.float32)}, None)), 25),
+        _reply(5, ArrayRecord({"model/" + TABLE: truncated}), 25),
     ]
     agg, _ = strategy.aggregate_train(1, replies)
-    assert sorted(strategy.last_round["failed"]) == [2, 3, 4]
+    failed = strategy.last_round["failed"]
+    assert sorted(failed) == [2, 3, 4, 5] and failed[5].startswith("unreadable update")
     got = from_record(agg)["model/" + TABLE]
     np.testing.assert_allclose(got, local[TABLE], atol=2e-3)  # drone 1's 8-bit update alone
 
