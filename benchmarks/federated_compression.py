@@ -69,6 +69,12 @@ def main() -> None:
     ap.add_argument("--schemes", nargs="+", default=["iid", "sector"])
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS))
     ap.add_argument("--results", default="federated_compression")
+    ap.add_argument(
+        "--report",
+        action="store_true",
+        help="run nothing: tabulate the runs in --work at the last round all of a scheme's "
+        "variants reached (a benchmark stopped early)",
+    )
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     lego = a.work / "lego.h5"
@@ -81,6 +87,9 @@ def main() -> None:
             shard_dataset(lego, shards, a.drones, scheme)
         paths = [shards / f"client_{k}.h5" for k in range(a.drones)]
         cfg = dataclasses.asdict(resolve_once(preset("scene-sized"), paths).config)
+        if a.report:
+            rows += _reported(a, scheme)
+            continue
         central = None
         for name in a.variants:
             run = a.work / f"{scheme}_{a.drones}_{name.replace(' ', '_')}"
@@ -107,6 +116,22 @@ def main() -> None:
             _write(a, rows)  # after every run: a partial table survives an interruption
 
 
+def _reported(a: argparse.Namespace, scheme: str) -> list[dict]:
+    """Rows of the finished or stopped runs of ``scheme`` in ``a.work``, all cut at the last
+    round every one of them recorded (runs without a completed round 1 are left out)."""
+    runs = {n: a.work / f"{scheme}_{a.drones}_{n.replace(' ', '_')}" for n in a.variants}
+    done = {n: fed.load_rounds(r) for n, r in runs.items() if (r / fed.ROUNDS).exists()}
+    done = {n: rounds for n, rounds in done.items() if len(rounds) > 1}
+    if not done:
+        return []
+    last = min(rounds[-1]["round"] for rounds in done.values())
+    central = float("nan")
+    for r in runs.values():
+        if (r / "baselines" / "curves.json").exists():
+            central = load_curves(r)["centralized"][-1]["psnr"]
+    return [_row(scheme, n, rounds[: last + 1], central) for n, rounds in done.items()]
+
+
 def _row(scheme: str, name: str, rounds: list[dict], central: float) -> dict:
     """One table row from a run's rounds (round 0 is the pretraining: not counted)."""
     up = [b for r in rounds[1:] for b in r["bytes_up"].values()]
@@ -118,6 +143,7 @@ def _row(scheme: str, name: str, rounds: list[dict], central: float) -> dict:
         down=statistics.median(down),
         wifi=statistics.median(r["wifi_s"] for r in rounds[1:]),
         psnr=rounds[-1]["psnr"],
+        rounds=rounds[-1]["round"],
         central=central,
         left_out=sum(len(r["failed"]) for r in rounds),
     )
@@ -132,24 +158,26 @@ def _write(a: argparse.Namespace, rows: list[dict]) -> None:
         f"lego 160 px, {a.drones} drones, scene-sized model resolved on the shards, "
         f"N_pt = {a.pretrain}, N_l = {a.local_steps}, R = {a.rounds} (a short schedule for a "
         f"shared 2-core machine: PSNRs are far below converged ones; compare rows of one scheme), "
-        f"PSNR on {a.eval_views} evenly spaced test views after round R; bytes as Flower "
-        "serialises them, median over drones and rounds 1..R; Wi-Fi s: one round's uploads and "
-        "downloads in turn at the AI-deck's ~614 kB/s. Load average at the end: "
+        f"PSNR on {a.eval_views} evenly spaced test views after the round given (R, or fewer "
+        "when the run was stopped: `--report` compares a scheme's variants at one round); "
+        "bytes as Flower serialises them, median over drones and rounds 1..R; Wi-Fi s: one "
+        "round's uploads and downloads in turn at the AI-deck's ~614 kB/s. Load average: "
         f"{' '.join(os.getloadavg().__repr__().strip('()').split(', '))}.",
         "",
         f"Command: `nice .venv/bin/python benchmarks/federated_compression.py --work {a.work} "
         f"--pretrain {a.pretrain} --local-steps {a.local_steps} --rounds {a.rounds} "
         f"--drones {a.drones} --eval-views {a.eval_views}`",
         "",
-        "| scheme | variant | up B/drone/round | down B/drone/round | Wi-Fi s/round | PSNR dB "
-        "| vs fp16 dB | vs central dB |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
+        "| scheme | variant | rounds | up B/drone/round | down B/drone/round | Wi-Fi s/round "
+        "| PSNR dB | vs fp16 dB | vs central dB |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         vs = r["psnr"] - ref.get(r["scheme"], float("nan"))
         lines.append(
-            f"| {r['scheme']} | {r['variant']} | {r['up']:,.0f} | {r['down']:,.0f} | "
-            f"{r['wifi']:.2f} | {r['psnr']:.2f} | {vs:+.2f} | {r['psnr'] - r['central']:+.2f} |"
+            f"| {r['scheme']} | {r['variant']} | {r['rounds']} | {r['up']:,.0f} | "
+            f"{r['down']:,.0f} | {r['wifi']:.2f} | {r['psnr']:.2f} | {vs:+.2f} | "
+            f"{r['psnr'] - r['central']:+.2f} |"
         )
     text = "\n".join(lines) + "\n"
     print(text)
