@@ -85,11 +85,11 @@ def main() -> None:
         shards = a.work / f"shards_{scheme}_{a.drones}"
         if not (shards / "summary.json").exists():
             shard_dataset(lego, shards, a.drones, scheme)
-        paths = [shards / f"client_{k}.h5" for k in range(a.drones)]
-        cfg = dataclasses.asdict(resolve_once(preset("scene-sized"), paths).config)
         if a.report:
             rows += _reported(a, scheme)
             continue
+        paths = [shards / f"client_{k}.h5" for k in range(a.drones)]
+        cfg = dataclasses.asdict(resolve_once(preset("scene-sized"), paths).config)
         central = None
         for name in a.variants:
             run = a.work / f"{scheme}_{a.drones}_{name.replace(' ', '_')}"
