@@ -114,6 +114,8 @@ def main() -> None:
                 central = load_curves(run)["centralized"][-1]["psnr"]
             rows.append(_row(scheme, name, fed.load_rounds(run), central))
             _write(a, rows)  # after every run: a partial table survives an interruption
+    if a.report:
+        _write(a, rows)
 
 
 def _reported(a: argparse.Namespace, scheme: str) -> list[dict]:
