@@ -34,7 +34,7 @@ import torch
 from dronecap.datasets.blender import import_blender
 from dronecap.datasets.shard import shard_dataset
 from dronecap.federated import engines
-from dronecap.federated import run as fed
+from dronecap.federated import state as fed
 from dronecap.federated.baselines import load_curves, merge_curves, run_baselines
 from dronecap.federated.plot import plot_runs
 from dronecap.files import atomic_output

@@ -25,7 +25,7 @@ import argparse
 import json
 from pathlib import Path
 
-from dronecap.federated import run as fed
+from dronecap.federated import state as fed
 from dronecap.federated.plot import save_png
 from dronecap.files import atomic_output
 

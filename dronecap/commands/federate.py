@@ -13,7 +13,7 @@ from dronecap.stage import setting
 
 def _client_or_all(text: str) -> int:
     """``--fail-client``: a drone number, or ``all`` (every drone)."""
-    return -2 if text == "all" else int(text)  # -2: federated.run.EVERY_CLIENT
+    return -2 if text == "all" else int(text)  # -2: federated.state.EVERY_CLIENT
 
 
 @dataclass(kw_only=True)
@@ -31,21 +31,39 @@ class Settings(Base):
     pretrain: int = setting(10_000, minimum=0, help="coordinator's N_pt steps")
     local_steps: int = setting(1000, minimum=1, help="N_l steps per drone per round")
     rounds: int = setting(5, minimum=1, help="communication rounds R")
-    preset: str = setting("tiny-dronerf", help="trainer preset (nerf/config.py)")
+    preset: str = setting(
+        "scene-sized", help="trainer preset (nerf/config.py; default: sized to the scene, once)"
+    )
     exchange_grid: bool = setting(False, help="also average the occupancy grids")
-    transfer_dtype: str = setting("fp32", choices=("fp32", "fp16"), help="dtype of the arrays sent")
-    compress: bool = setting(
+    transfer_dtype: str = setting(
+        "fp16", choices=("fp32", "fp16"), help="dtype of whole arrays sent (default fp16)"
+    )
+    quant_bits: int = setting(
+        4,
+        choices=(0, 4, 8),
+        help="drones send their change quantised to this many bits (hash table; MLPs 8), with "
+        "error feedback; 0: whole arrays in --transfer-dtype (default 4)",
+    )
+    sparse_rows: float = setting(
+        0.03,
+        minimum=1e-4,
+        maximum=1.0,
+        help="with --quant-bits: fraction of hash-table rows a drone sends, the most changed "
+        "(default 0.03)",
+    )
+    plain_average: bool = setting(
         False,
-        help="send every array losslessly compressed (byte shuffle + deflate; ~14%% smaller "
-        "fp16 updates)",
+        help="average every hash-table row over all drones (plain FedAvg); default: each row "
+        "over the drones that sent it (visibility-weighted)",
     )
     server_lr: float = setting(
-        1.0,
+        2.0,
         minimum=1e-6,
-        help="FedAvgM server step size on the averaged update (default 1: plain FedAvg)",
+        help="FedAvgM server step size on the averaged update (default 2; 1 with momentum 0: "
+        "plain FedAvg)",
     )
     server_momentum: float = setting(
-        0.0, minimum=0.0, maximum=0.999, help="FedAvgM server momentum (default 0)"
+        0.5, minimum=0.0, maximum=0.999, help="FedAvgM server momentum (default 0.5)"
     )
     baselines: bool = setting(
         False, help="also train centralized and single-drone baselines on the same step budget"
@@ -66,7 +84,19 @@ class Settings(Base):
         help="do not simulate: prepare --out for deployment mode (a SuperLink and one SuperNode "
         "per drone) and print the commands that run it",
     )
+    superlink_host: str = setting(
+        "127.0.0.1", help="with --deployment: the SuperLink's address (in its TLS certificate)"
+    )
     superlink_port: int = setting(8000, minimum=1, maximum=65535, help="with --deployment")
+    keys: str | None = setting(
+        None,
+        help="with --deployment: folder of TLS certificates and drone keys (made there when it "
+        "holds none; default RUN/keys)",
+    )
+    insecure: bool = setting(
+        False,
+        help="with --deployment: plain text and no node authentication (loopback tests only)",
+    )
     restart: bool = setting(False, help="discard an existing run in --out")
     out: str | None = setting(None, help="run folder (default: runs/federate in the workspace)")
 
@@ -94,7 +124,7 @@ def run(args: Settings) -> int:
     shards = _shards(src, out, args)
 
     from dronecap.federated import engines
-    from dronecap.federated import run as fed
+    from dronecap.federated import state as fed
     from dronecap.federated.sizing import resolve_once
     from dronecap.nerf.resolve import choice_lines
 
@@ -108,6 +138,7 @@ def run(args: Settings) -> int:
         cfg=dataclasses.asdict(cfg),
         shard_sha256=[sha256_file(p) for p in shards],
         **{name: getattr(args, name) for name in same_name},  # the run's options, by name
+        visibility=not args.plain_average,
     )
     if (out / fed.SETTINGS).exists() and (old := fed.load_settings(out)) != s:
         what = "settings"
@@ -121,7 +152,12 @@ def run(args: Settings) -> int:
         )
     fed.save_settings(out, s)
     if args.deployment:
-        cmds = engines.write_deployment(out, port=args.superlink_port)
+        cmds = engines.write_deployment(
+            out,
+            args.superlink_host,
+            args.superlink_port,
+            None if args.insecure else _keys(out, args),
+        )
         print("deployment mode: run these (then this command again, for --baselines and the plot):")
         print("\n".join(cmds))
         return 0
@@ -144,6 +180,18 @@ def run(args: Settings) -> int:
     _summary(doc)
     print(f"wrote {out}: rounds.json, {'psnr.png, ' if png else ''}checkpoint.pt")
     return 0
+
+
+def _keys(out: Path, args: Settings) -> Path:
+    """The deployment's key folder: ``--keys`` or RUN/keys, with a new CA, SuperLink
+    certificate and one key pair per drone made there when it holds no CA yet."""
+    from dronecap.federated.secure import CA_CERT, make_keys
+
+    keys = Path(args.keys).resolve() if args.keys else out / "keys"
+    if not (keys / CA_CERT).exists():
+        make_keys(keys, args.clients, [args.superlink_host])
+        print(f"made TLS certificates and {args.clients} drone key pairs in {keys}")
+    return keys
 
 
 def _shards(src: Path, out: Path, args: Settings) -> list[Path]:

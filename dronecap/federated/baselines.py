@@ -23,7 +23,7 @@ import numpy as np
 
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
-from dronecap.federated.run import (
+from dronecap.federated.state import (
     FedSettings,
     load_rounds,
     save_rounds,

@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dronecap.federated.run import clientapp, load_rounds, load_settings, make_server_app
+from dronecap.federated.run import clientapp, make_server_app
+from dronecap.federated.state import load_rounds, load_settings
 from dronecap.files import atomic_output
 
 APP_TOML = """\
@@ -44,11 +45,13 @@ default = "dronecap"
 
 [superlink.dronecap]
 address = "{address}"
-insecure = true
+{security}
 """
 
 
-def write_deployment(run_dir: Path, host: str = "127.0.0.1", port: int = 8000) -> list[str]:
+def write_deployment(
+    run_dir: Path, host: str = "127.0.0.1", port: int = 8000, keys: Path | None = None
+) -> list[str]:
     """Prepare ``run_dir`` for deployment mode; returns the shell commands that run it.
 
     Writes the Flower app (``RUN/flwr_app/pyproject.toml``, pointing at this module's
@@ -56,24 +59,48 @@ def write_deployment(run_dir: Path, host: str = "127.0.0.1", port: int = 8000) -
     (``RUN/flwr_home/config.toml``, used through ``FLWR_HOME``). The commands start one
     SuperLink, one SuperNode per drone (``partition-id`` K, runtime port 9094 + K) and
     submit the run with ``flwr run``; each long-running one ends with ``&``.
+
+    ``keys``: a folder from :func:`dronecap.federated.secure.make_keys`: the SuperLink then
+    serves TLS only, with its certificate, and admits only SuperNodes whose public key was
+    registered (``--enable-supernode-auth``; one ``flwr supernode register`` per drone, over
+    TLS); each SuperNode verifies the SuperLink against the CA and signs with its drone key.
+    None: plain text and no node authentication (``--insecure``; loopback experiments only).
     """
+    from dronecap.federated.secure import CA_CERT, SERVER_CERT, SERVER_KEY, drone_key
+
     run_dir = Path(run_dir).resolve()
     s = load_settings(run_dir)
     app, home = run_dir / "flwr_app", run_dir / "flwr_home"
+    ca = Path(keys).resolve() / CA_CERT if keys else None
+    security = f'root-certificates = "{ca}"' if ca else "insecure = true"
     for path, text in (
         (app / "pyproject.toml", APP_TOML),
-        (home / "config.toml", FLWR_CONFIG.format(address=f"{host}:{port}")),
+        (home / "config.toml", FLWR_CONFIG.format(address=f"{host}:{port}", security=security)),
     ):
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_output(path) as tmp:
             tmp.write_text(text)
+    if keys:
+        k_dir = Path(keys).resolve()
+        link_sec = (
+            f"--ssl-ca-certfile {ca} --ssl-certfile {k_dir / SERVER_CERT} "
+            f"--ssl-keyfile {k_dir / SERVER_KEY} --enable-supernode-auth"
+        )
+        node_sec = [
+            f"--root-certificates {ca} --auth-supernode-private-key {drone_key(k_dir, k)[0]}"
+            for k in range(s.n_clients)
+        ]
+    else:
+        link_sec, node_sec = "--insecure", ["--insecure"] * s.n_clients
     cmds = [
         f"export FLWR_HOME={home}",
-        f"flower-superlink --insecure --disable-runtime-dependency-installation "
+        f"flower-superlink {link_sec} --disable-runtime-dependency-installation "
         f"--host {host} --port {port} &",
     ]
+    if keys:
+        cmds += [f"flwr supernode register {drone_key(k_dir, k)[1]}" for k in range(s.n_clients)]
     cmds += [
-        f"flower-supernode --insecure --superlink {host}:{port} --host {host} "
+        f"flower-supernode {node_sec[k]} --superlink {host}:{port} --host {host} "
         f"--port {9094 + k} --node-config 'partition-id={k} num-partitions={s.n_clients}' &"
         for k in range(s.n_clients)
     ]

@@ -159,45 +159,90 @@ def array_data_bytes(arrays: Mapping[str, np.ndarray]) -> int:
 
 
 class DroneFedAvg(FedAvgM):
-    """Flower's FedAvg(M), plus exact byte accounting and float32 accumulation of fp16 updates.
+    """Flower's FedAvgM strategy with checked, decoded, visibility-weighted aggregation.
 
-    Aggregation itself is Flower's (``FedAvg.aggregate_train``, weighted by ``num-examples``);
-    before it, each reply's arrays are up-cast to float32 so fp16 transfer does not also mean
-    fp16 accumulation. With ``server_learning_rate`` != 1 or ``server_momentum`` > 0 Flower's
-    FedAvgM then takes a server step: ``m <- momentum * m + (x - avg)``, then ``x <- x - lr * m``
-    (Hsu et al. 2019), from the float32 global model ``self.current_arrays`` (set by
-    :meth:`resume` before the first round, then every aggregate); defaults (1, 0) are plain
-    FedAvg. After each
-    ``configure_train``/``aggregate_train``, ``self.last_round`` holds ``bytes_down`` (per
-    destination node), ``bytes_up`` (per replying node) and ``failed`` (node id -> reason).
+    Flower samples the drones and builds the messages (``configure_train``); the aggregation is
+    this class's: each reply is decoded (plain, :func:`encode_array`-compressed, or a
+    :mod:`~dronecap.federated.sparse` delta against the model broadcast this round), screened
+    (:func:`dronecap.federated.checks.screen`: a bad update is left out with a reason), and
+    averaged in float32 (:func:`masked_mean`). The weights are the train-image counts the
+    server knows (``known_examples``, node id -> count), never the self-reported ones. With
+    ``visibility`` each hash-table row is averaged over the drones that sent it only. Then,
+    with ``server_learning_rate`` != 1 or ``server_momentum`` > 0, FedAvgM's server step
+    ``m <- momentum * m + (x - avg)``, ``x <- x - lr * m`` (Hsu et al. 2019) from the float32
+    global model ``self.current_arrays`` (set by :meth:`resume`); defaults (1, 0) are plain
+    FedAvg. After each ``configure_train``/``aggregate_train``, ``self.last_round`` holds
+    ``bytes_down`` (per destination node), ``bytes_up`` (per replying node) and ``failed``
+    (node id -> reason).
     """
 
-    def __init__(self, **kwargs: Any) -> None:
+    def __init__(self, visibility: bool = False, **kwargs: Any) -> None:
         kwargs.setdefault("weighted_by_key", WEIGHT_KEY)
         kwargs.setdefault("fraction_evaluate", 0.0)  # the global model is tested server-side
         super().__init__(**kwargs)
+        self.visibility = visibility
+        self.known_examples: dict[int, int] = {}
+        self.base: dict[str, np.ndarray] = {}
         self.last_round: dict[str, Any] = {"bytes_down": {}, "bytes_up": {}, "failed": {}}
 
     def configure_train(self, server_round, arrays, config, grid) -> Iterable[Message]:  # noqa: D102
         messages = list(super().configure_train(server_round, arrays, config, grid))
         down = {m.metadata.dst_node_id: payload_bytes(m.content) for m in messages}
         self.last_round = {"bytes_down": down, "bytes_up": {}, "failed": {}}
+        self.base = {k: v.astype(np.float32) for k, v in from_record(arrays).items()}
         return messages
 
     def aggregate_train(  # noqa: D102
         self, server_round: int, replies: Iterable[Message]
     ) -> tuple[ArrayRecord | None, MetricRecord | None]:
-        ok: list[Message] = []
+        from dronecap.federated.checks import screen
+
+        failed = self.last_round["failed"]
+        base = self.base or from_record(self.current_arrays)
+        models: dict[int, dict[str, np.ndarray]] = {}
+        masks: dict[int, dict[str, np.ndarray]] = {}
+        claimed: dict[int, float] = {}
         for msg in replies:
             node = msg.metadata.src_node_id
             if msg.has_error():
-                self.last_round["failed"][node] = msg.error.reason
+                failed[node] = msg.error.reason
                 continue
             self.last_round["bytes_up"][node] = payload_bytes(msg.content)
-            for key in list(msg.content.array_records):
-                msg.content.array_records[key] = _float32_record(msg.content.array_records[key])
-            ok.append(msg)
-        return super().aggregate_train(server_round, ok)
+            try:
+                count = float(msg.content["metrics"][self.weighted_by_key])
+                model, mask = decode_reply(msg.content[self.arrayrecord_key], base)
+            except (KeyError, TypeError, ValueError) as err:
+                failed[node] = f"unreadable update: {err}"
+                continue
+            models[node], masks[node], claimed[node] = model, mask, count
+        known = {n: float(self.known_examples.get(n, claimed[n])) for n in models}
+        failed.update(screen(models, base, claimed, known))
+        ok = [n for n in models if n not in failed]
+        if not ok:
+            return None, None
+        deltas = {n: {k: models[n][k].astype(np.float64) - base[k] for k in base} for n in ok}
+        weights = {n: float(known[n]) for n in ok}
+        vis = {n: masks[n] for n in ok} if self.visibility else {}
+        avg = masked_mean(deltas, weights, vis)
+        new = self._server_step({k: (base[k] + avg[k]).astype(np.float32) for k in base})
+        self.current_arrays = to_record(new)
+        return to_record(new), MetricRecord({"participants": len(ok)})
+
+    def _server_step(self, avg: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """FedAvgM's step from ``self.current_arrays`` towards the average ``avg`` (plain
+        FedAvg, ``avg`` itself, with lr 1 and no momentum)."""
+        if not self.server_opt:
+            return avg
+        x = from_record(self.current_arrays)
+        grad = [x[k] - avg[k] for k in x]
+        if self.server_momentum > 0.0:
+            if self.momentum_vector is not None:
+                grad = [
+                    self.server_momentum * m + g
+                    for m, g in zip(self.momentum_vector, grad, strict=True)
+                ]
+            self.momentum_vector = grad
+        return {k: x[k] - self.server_learning_rate * g for k, g in zip(x, grad, strict=True)}
 
     def server_state(self) -> dict[str, np.ndarray]:
         """The server optimizer's momentum ``{name: array}`` (empty before the first step or
@@ -209,15 +254,60 @@ class DroneFedAvg(FedAvgM):
     def resume(self, current: Mapping[str, np.ndarray], momentum: Mapping[str, np.ndarray]) -> None:
         """Start or continue a run from the float32 global model ``current`` (not its fp16 or
         compressed wire copy) and the saved ``momentum`` (:meth:`server_state`; empty: none)."""
-        self.current_arrays = to_record({k: np.asarray(v, np.float32) for k, v in current.items()})
+        self.base = {k: np.asarray(v, np.float32) for k, v in current.items()}
+        self.current_arrays = to_record(self.base)
         self.momentum_vector = [np.asarray(momentum[k]) for k in current] if momentum else None
 
 
-def _float32_record(record: ArrayRecord) -> ArrayRecord:
-    """``record`` decoded (:func:`from_record`), floating arrays as float32, uncompressed."""
-    return to_record(
-        {
-            k: a.astype(np.float32) if np.issubdtype(a.dtype, np.floating) else a
-            for k, a in from_record(record).items()
-        }
-    )
+def decode_reply(
+    record: ArrayRecord, base: Mapping[str, np.ndarray]
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """A drone's model from its reply and the rows it sent.
+
+    ``record``: the reply's arrays, each plain, compressed (:func:`encode_array`) or a sparse
+    delta (:func:`dronecap.federated.sparse.encode_delta`) against ``base`` (the model
+    broadcast this round, float32). Returns ``(model, masks)``: {name: array} (dtype as sent
+    for plain arrays, float32 for deltas) and {name: bool [rows] mask of the rows sent} for the
+    sparse arrays. Raises ValueError on a malformed or mismatched array."""
+    from dronecap.federated.sparse import SPARSE, decode_delta
+
+    model: dict[str, np.ndarray] = {}
+    masks: dict[str, np.ndarray] = {}
+    for key, arr in record.items():
+        if arr.stype != SPARSE:
+            model[key] = decode_array(arr)
+            continue
+        if key not in base or tuple(arr.shape) != base[key].shape:
+            raise ValueError(f"sparse {key} of shape {tuple(arr.shape)} matches no model array")
+        delta, masks[key] = decode_delta(arr)
+        model[key] = base[key] + delta
+    return model, masks
+
+
+def masked_mean(
+    deltas: Mapping[int, Mapping[str, np.ndarray]],
+    weights: Mapping[int, float],
+    masks: Mapping[int, Mapping[str, np.ndarray]],
+) -> dict[str, np.ndarray]:
+    """Weighted mean of the drones' changes, row by row over the drones that sent each row.
+
+    ``deltas``: drone -> {name: change [rows, ...]}; ``weights``: drone -> weight > 0
+    (all zero or negative: equal weights); ``masks``: drone -> {name: bool [rows]} rows that
+    drone sent (a name or drone without a mask: every row). Row i of ``name`` is
+    ``sum_k w_k m_ki d_ki / sum_k w_k m_ki`` (0 where no drone sent it). Returns float64.
+    """
+    drones = list(deltas)
+    w = np.array([max(float(weights[k]), 0.0) for k in drones], np.float64)
+    w = w if w.sum() > 0 else np.ones_like(w)
+    out: dict[str, np.ndarray] = {}
+    for name in deltas[drones[0]]:
+        shape = deltas[drones[0]][name].shape
+        num = np.zeros(shape, np.float64)
+        den = np.zeros(shape[:1] if shape else (), np.float64)
+        for wk, k in zip(w, drones, strict=True):
+            m = masks.get(k, {}).get(name)
+            num += wk * deltas[k][name]
+            den = den + (wk * m if m is not None else wk)
+        den = den.reshape(den.shape + (1,) * (len(shape) - den.ndim))
+        out[name] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    return out

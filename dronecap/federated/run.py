@@ -32,23 +32,29 @@ from its last checkpoint. A round where every drone failed raises :class:`Federa
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import re
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from flwr.app import ConfigRecord, Context, Message, MessageType, MetricRecord, RecordDict
+from flwr.app import (
+    ArrayRecord,
+    ConfigRecord,
+    Context,
+    Message,
+    MessageType,
+    MetricRecord,
+    RecordDict,
+)
 from flwr.clientapp import ClientApp
 from flwr.serverapp import Grid, ServerApp
 
-from dronecap.datasets.format import Dataset, open_dataset
-from dronecap.errors import InputError
+from dronecap.datasets.format import open_dataset
 from dronecap.federated.fedavg import (
+    MODEL,
     WEIGHT_KEY,
     DroneFedAvg,
     from_record,
@@ -57,103 +63,29 @@ from dronecap.federated.fedavg import (
     to_record,
     unpack_update,
 )
+from dronecap.federated.state import (
+    EVERY_CLIENT,
+    FINAL,
+    FederationFailed,
+    FedSettings,
+    client_dir,
+    latest_round,
+    load_momentum,
+    load_rounds,
+    load_settings,
+    residual_file,
+    round_file,
+    round_link_times,
+    save_momentum,
+    save_rounds,
+    test_split,
+    train_split,
+)
 from dronecap.files import atomic_output
-from dronecap.nerf.config import TrainConfig, config_from_dict
 
 log = logging.getLogger("dronecap.federate")
 
-SETTINGS = "federation.json"
-ROUNDS = "rounds.json"
-FINAL = "checkpoint.pt"
 PRETRAIN_ACTION = f"{MessageType.TRAIN}.pretrain"
-EVERY_CLIENT = -2  # fail_client value: every drone fails in fail_round (fault injection)
-
-
-class FederationFailed(InputError):
-    """A federation that cannot go on: every drone failed a round, or the pretraining failed.
-    The rounds completed so far are kept; a rerun resumes from the last of them."""
-
-
-@dataclass
-class FedSettings:
-    """One federated run. Paths are absolute; ``cfg`` is a TrainConfig as a dict."""
-
-    shards: list[str]  # one dataset file per drone (kind "shard" or "dataset"), partition order
-    cfg: dict[str, Any]
-    pretrain: int  # N_pt: coordinator's steps before round 1
-    local_steps: int  # N_l: steps per drone per round
-    rounds: int  # R
-    exchange_grid: bool = False  # also average the occupancy grid's densities
-    transfer_dtype: str = "fp32"  # "fp32" or "fp16" for the floating arrays on the wire
-    compress: bool = False  # lossless shuffle + deflate of every array on the wire (fedavg.py)
-    server_lr: float = 1.0  # FedAvgM server step size (1 with momentum 0: plain FedAvg)
-    server_momentum: float = 0.0  # FedAvgM server momentum
-    eval_views: int = 0  # test views for the per-round PSNR (0: all)
-    round_timeout: float = 3600.0  # seconds the server waits for a round's replies
-    fail_client: int = -1  # fault injection: this partition (EVERY_CLIENT: all) raises ...
-    fail_round: int = -1  # ... in this round (-1: never)
-    seed: int = 0
-    shard_sha256: list[str] = field(default_factory=list)  # content of each shard at the start
-
-    def __post_init__(self) -> None:
-        self.cfg = json.loads(json.dumps(self.cfg))  # tuples -> lists, as read back from disk
-
-    @property
-    def n_clients(self) -> int:
-        """Number of drones."""
-        return len(self.shards)
-
-    @property
-    def total_steps(self) -> int:
-        """Steps on the coordinator's critical path: N_pt + R * N_l (the step budget)."""
-        return self.pretrain + self.rounds * self.local_steps
-
-    def train_config(self) -> TrainConfig:
-        """The trainer configuration (its schedule spans the whole step budget)."""
-        return config_from_dict(self.cfg).replace(steps=self.total_steps, seed=self.seed)
-
-
-def save_settings(run_dir: Path, s: FedSettings) -> None:
-    """Write ``RUN/federation.json`` atomically."""
-    with atomic_output(run_dir / SETTINGS) as tmp:
-        tmp.write_text(json.dumps(dataclasses.asdict(s), indent=1))
-
-
-def load_settings(run_dir: Path) -> FedSettings:
-    """Read ``RUN/federation.json``."""
-    return FedSettings(**json.loads((Path(run_dir) / SETTINGS).read_text()))
-
-
-def train_split(path: str | Path) -> Dataset:
-    """The train images of one drone's shard file."""
-    ds = open_dataset(path)
-    return ds.subset(ds.indices("train"))
-
-
-def test_split(path: str | Path, views: int = 0) -> Dataset:
-    """The common test set carried by every shard (``views`` > 0: that many, evenly spaced)."""
-    ds = open_dataset(path)
-    idx = ds.indices("test")
-    if 0 < views < len(idx):
-        idx = idx[np.linspace(0, len(idx) - 1, views).round().astype(int)]
-    return ds.subset(idx)
-
-
-def client_dir(run_dir: Path, k: int) -> Path:
-    """Folder of drone ``k``'s per-round checkpoints."""
-    return Path(run_dir) / "clients" / f"client_{k}"
-
-
-def round_file(folder: Path, r: int) -> Path:
-    """``folder/round_RRR.pt``."""
-    return Path(folder) / f"round_{r:03d}.pt"
-
-
-def latest_round(folder: Path, before: int) -> int:
-    """Highest round < ``before`` with a checkpoint in ``folder`` (-1: none)."""
-    rounds = [int(p.stem[6:]) for p in Path(folder).glob("round_*.pt")]
-    done = [r for r in rounds if r < before]
-    return max(done, default=-1)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -203,8 +135,9 @@ def _local_round(msg: Message, context: Context, pretrain: bool) -> Message:
         trainer = Trainer.load(round_file(folder, prev), train=train)
     else:
         trainer = Trainer(s.train_config(), train)
+    received = from_record(msg.content["arrays"]) if not pretrain else {}
     if not pretrain:
-        install_global(trainer, from_record(msg.content["arrays"]), rebuild=prev < 0)
+        install_global(trainer, received, rebuild=prev < 0)
         if prev < 0:
             trainer.step = s.pretrain  # join the coordinator's learning-rate schedule
     t0 = time.perf_counter()
@@ -212,14 +145,63 @@ def _local_round(msg: Message, context: Context, pretrain: bool) -> Message:
     train_s = time.perf_counter() - t0
     with atomic_output(round_file(folder, r)) as tmp:
         trainer.save(tmp)
-    arrays = pack_update(
-        trainer.model_weights(),
-        trainer.grid_state() if s.exchange_grid else None,
-        s.transfer_dtype,
-    )
+    grid = trainer.grid_state() if s.exchange_grid else None
+    if pretrain or not s.quant_bits:
+        record = to_record(pack_update(trainer.model_weights(), grid, s.transfer_dtype), s.compress)
+    else:
+        record = _sparse_record(s, folder, r, prev, trainer, received, grid)
     metrics = MetricRecord({WEIGHT_KEY: train.n, "train-s": train_s, "partition-id": k})
-    record = to_record(arrays, s.compress)
+    if not pretrain and str(k) in s.poison:
+        record, metrics = _poisoned(s.poison[str(k)], trainer.model_weights(), record, metrics)
     return Message(RecordDict({"arrays": record, "metrics": metrics}), reply_to=msg)
+
+
+def _sparse_record(
+    s: FedSettings,
+    folder: Path,
+    r: int,
+    prev: int,
+    trainer: Any,
+    received: dict[str, np.ndarray],
+    grid: dict[str, np.ndarray] | None,
+) -> ArrayRecord:
+    """The sparse quantised update of round ``r`` (:func:`sparse.encode_update` against the
+    ``received`` global model), the exchanged grid (if any) as whole arrays; the error-feedback
+    residual is read from round ``prev``'s file and saved as round ``r``'s."""
+    from dronecap.federated.sparse import encode_update
+
+    model, _ = unpack_update(received)
+    res_prev = residual_file(folder, prev)
+    residual = dict(np.load(res_prev)) if prev >= 0 and res_prev.exists() else {}
+    arrays, residual = encode_update(
+        trainer.model_weights(), model, residual, s.sparse_rows, s.quant_bits
+    )
+    with atomic_output(residual_file(folder, r)) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **residual)
+    record = to_record(pack_update({}, grid, s.transfer_dtype), s.compress)
+    for name, arr in arrays.items():
+        record[MODEL + name] = arr
+    return record
+
+
+def _poisoned(
+    how: str, model: dict[str, np.ndarray], record: ArrayRecord, metrics: MetricRecord
+) -> tuple[ArrayRecord, MetricRecord]:
+    """Fault injection: a hostile drone's reply. ``how``: "nan" (the model with one NaN),
+    "huge" (every weight 1e30, float32) or "count" (the honest update claiming 10^9 images)."""
+    if how == "count":
+        metrics[WEIGHT_KEY] = 10**9
+        return record, metrics
+    bad = {k: np.array(v, np.float32) for k, v in model.items()}
+    first = sorted(bad)[0]
+    if how == "nan":
+        bad[first].reshape(-1)[0] = np.nan
+    elif how == "huge":
+        bad = {k: np.full_like(v, 1e30) for k, v in bad.items()}
+    else:
+        raise ValueError(f"unknown poison {how!r}: nan, huge or count")
+    return to_record(pack_update(bad, None, "fp32")), metrics
 
 
 def install_global(trainer: Any, update: dict[str, np.ndarray], rebuild: bool) -> None:
@@ -311,7 +293,11 @@ def serve(grid: Grid, run_dir: Path) -> None:
         arrayrecord_key="arrays",
         server_learning_rate=s.server_lr,
         server_momentum=s.server_momentum,
+        visibility=s.visibility,
     )
+    strategy.known_examples = {
+        node: len(open_dataset(s.shards[k]).indices("train")) for k, node in nodes.items()
+    }
     part = {node: k for k, node in nodes.items()}
     last = history[-1]["round"]
     current = pack_update(*evaluator.load_global(run_dir, last), "fp32")
@@ -348,24 +334,6 @@ def serve(grid: Grid, run_dir: Path) -> None:
         save_rounds(run_dir, s, history)
         arrays = to_record(pack_update(*unpack_update(update), s.transfer_dtype), s.compress)
     evaluator.write_final(run_dir, history[-1]["round"])
-
-
-def save_momentum(run_dir: Path, r: int, momentum: dict[str, np.ndarray]) -> None:
-    """Write the server optimizer's momentum after round ``r`` (``RUN/global/momentum_RRR.npz``;
-    nothing when it has none)."""
-    if momentum:
-        with atomic_output(Path(run_dir) / "global" / f"momentum_{r:03d}.npz") as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **momentum)
-
-
-def load_momentum(run_dir: Path, r: int) -> dict[str, np.ndarray]:
-    """The momentum saved after round ``r`` (empty when none was saved)."""
-    p = Path(run_dir) / "global" / f"momentum_{r:03d}.npz"
-    if not p.exists():
-        return {}
-    with np.load(p) as z:
-        return {k: z[k] for k in z.files}
 
 
 def _last_line(reason: str) -> str:
@@ -428,10 +396,10 @@ class GlobalEvaluator:
             psnr=float(metrics["psnr"]),
             ssim=float(metrics["ssim"]),
             steps=self.s.pretrain + r * self.s.local_steps,
-            participants=len(entry["bytes_up"]),
+            participants=len(set(entry["bytes_up"]) - set(entry.get("failed", {}))),
             bytes_up_total=up,
             bytes_down_total=down,
-            link_s=_round_link_time(entry),
+            **round_link_times(entry),
             wall_s=time.perf_counter() - t0,
         )
         entry.setdefault("failed", {})
@@ -457,44 +425,3 @@ class GlobalEvaluator:
         info = {"dataset": self.s.shards[0], "config": self.trainer.cfg.__dict__, "round": r}
         with atomic_output(Path(run_dir) / "run.json") as tmp:
             tmp.write_text(json.dumps(info, indent=1, default=list))
-
-
-def link_time(n_bytes: int) -> float | None:
-    """Modelled seconds to send ``n_bytes`` over the drone radio (the GAP9 cost model's link);
-    None while that model is not installed."""
-    try:
-        from dronecap.gap9.model import link_time_s
-    except ImportError:
-        return None
-    return float(link_time_s(n_bytes))
-
-
-def _round_link_time(entry: dict) -> float | None:
-    """Modelled link seconds of a round: every upload and download in turn over the one shared
-    radio channel (as the paper counts it: 4 x 0.52 MB each way -> 2.24 s at 15 Mbit/s)."""
-    return link_time(sum(entry["bytes_up"].values()) + sum(entry["bytes_down"].values()))
-
-
-# ----------------------------------------------------------------------------------------------
-# rounds.json
-# ----------------------------------------------------------------------------------------------
-
-
-def load_rounds(run_dir: Path) -> list[dict]:
-    """Completed rounds recorded in ``RUN/rounds.json`` (empty when none)."""
-    p = Path(run_dir) / ROUNDS
-    return json.loads(p.read_text())["rounds"] if p.exists() else []
-
-
-def save_rounds(run_dir: Path, s: FedSettings, history: list[dict], **extra: Any) -> None:
-    """Rewrite ``RUN/rounds.json`` atomically (settings, rounds, and any ``extra`` sections)."""
-    p = Path(run_dir) / ROUNDS
-    doc = json.loads(p.read_text()) if p.exists() else {}
-    doc.update(settings=dataclasses.asdict(s), rounds=history, **extra)
-    with atomic_output(p) as tmp:
-        tmp.write_text(json.dumps(doc, indent=1))
-
-
-# ----------------------------------------------------------------------------------------------
-# Driver
-# ----------------------------------------------------------------------------------------------

@@ -46,7 +46,7 @@ def test_simulation_two_drones_with_a_failing_client(lego_shards, tmp_path):
 
     from dronecap.federated.engines import run_simulated
     from dronecap.federated.fedavg import pack_update, payload_bytes, to_record
-    from dronecap.federated.run import FedSettings, round_file, save_settings
+    from dronecap.federated.state import FedSettings, round_file, save_settings
     from dronecap.nerf.trainer import Trainer
 
     run = tmp_path / "run"
@@ -111,7 +111,7 @@ def _check_server_momentum_step(run: Path, rounds: int, lr: float, beta: float) 
     """Every round's global model is FedAvgM's step from the previous one, across the resume:
     ``m_r = beta m_{r-1} + (x_{r-1} - avg_r)``, ``x_r = x_{r-1} - lr m_r``, with ``avg_r`` the
     mean of the drones' fp16 models (equal shards) and ``m_r`` as saved after round r."""
-    from dronecap.federated.run import load_momentum, round_file
+    from dronecap.federated.state import load_momentum, round_file
     from dronecap.nerf.trainer import Trainer
 
     def weights(path: Path) -> dict[str, np.ndarray]:
@@ -145,7 +145,7 @@ def test_cli_interrupted_run_resumes_from_last_round(lego_h5, tmp_path):
     out = tmp_path / "fed"
     args = [str(lego_h5), "--clients", "2", "--scheme", "sector", "--preset", "test"]
     args += ["--pretrain", "12", "--local-steps", "6", "--rounds", "3", "--eval-views", "1"]
-    args += ["--transfer-dtype", "fp16", "--compress", "--server-lr", "1.5"]
+    args += ["--transfer-dtype", "fp16", "--compress", "--quant-bits", "0", "--server-lr", "1.5"]
     args += ["--server-momentum", "0.5", "--out", str(out)]
     # first attempt: stopped hard (whole process group) once round 1 is recorded
     proc = _federate(args, start_new_session=True)
@@ -182,7 +182,7 @@ def test_cli_interrupted_run_resumes_from_last_round(lego_h5, tmp_path):
 def test_deployment_superlink_and_supernodes_on_loopback(lego_shards, tmp_path):
     """The same apps with real SuperLink/SuperNode processes (the commands of --deployment)."""
     from dronecap.federated.engines import write_deployment
-    from dronecap.federated.run import FedSettings, load_rounds, save_settings
+    from dronecap.federated.state import FedSettings, load_rounds, save_settings
 
     run = tmp_path / "run"
     save_settings(

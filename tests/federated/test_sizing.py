@@ -11,8 +11,8 @@ from dronecap.datasets.format import write_dataset
 from dronecap.datasets.shard import shard_dataset
 from dronecap.errors import InputError
 from dronecap.federated.baselines import union_train
-from dronecap.federated.run import train_split
 from dronecap.federated.sizing import resolve_once
+from dronecap.federated.state import train_split
 from dronecap.gap9.model import memory_bytes
 from dronecap.nerf.config import SIZED_FIELDS, preset
 from dronecap.nerf.resolve import resolve
