@@ -5,8 +5,8 @@ Every registered image of the model becomes a frame (sorted by image name), with
 the model's camera (COLMAP and dronecap both centre pixel (u, v) at (u + 0.5, v + 0.5), so the
 parameters carry over; SIMPLE_PINHOLE becomes PINHOLE). All registered images must share one
 camera. The sparse points (with their colours) and the images each one is seen in give the bounds
-exactly as ``dronecap sfm`` does for a captured flight (:func:`sfm.normalize.normalize_scene`,
-:func:`sfm.normalize.near_far`); the points kept by the outlier removal are stored in the
+exactly as ``dronecap sfm`` does for a captured flight (:func:`datasets.normalize.normalize_scene`,
+:func:`datasets.normalize.near_far`); the points kept by the outlier removal are stored in the
 dataset (``extra/points3d_xyz``, ``extra/points3d_rgb``, scene frame) for exports. Frames get
 the every-8th test split of ``dronecap split``.
 """

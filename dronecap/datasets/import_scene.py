@@ -9,7 +9,7 @@ Both ``import-transforms`` and ``import-colmap`` end here:
   alpha is kept (with a white background) when some pixel is not opaque;
 - the camera is scaled exactly through the resize (:meth:`Camera.scaled_to`: fx, cx by
   new width / old width, fy, cy by new height / old height; distortion unchanged);
-- bounds as for a captured flight (:mod:`dronecap.sfm.normalize`): the poses are oriented,
+- bounds as for a captured flight (:mod:`dronecap.datasets.normalize`): the poses are oriented,
   centred and scaled into [-1, 1]^3 from the sparse points and camera centres, the AABB is the
   robust box (or, for an object capture with alpha and a pinhole camera, carved from the masks as
   import-blender does), near/far come from the points each view observes — unless the source
@@ -190,9 +190,9 @@ def normalize_to(c2w: np.ndarray, cover: np.ndarray) -> Any:
     scaled to a longest half side of 1, with SfM's margin; camera centres are not added.
 
     Returns:
-        :class:`dronecap.sfm.normalize.Normalization` (no sparse points, so no inliers).
+        :class:`dronecap.datasets.normalize.Normalization` (no sparse points, so no inliers).
     """
-    from dronecap.sfm.normalize import (
+    from dronecap.datasets.normalize import (
         Normalization,
         NormalizeSettings,
         up_rotation,
@@ -223,7 +223,7 @@ def _inside_outer(
     """Bounds in the source frame: what the points (else the views) cover, clipped to the
     source's declared outer box (see :func:`scene_bounds`)."""
     from dronecap.datasets.bounds import coverage_points
-    from dronecap.sfm.normalize import NormalizeSettings, near_far, robust_box, statistical_inliers
+    from dronecap.datasets.normalize import NormalizeSettings, near_far, robust_box, statistical_inliers
 
     box, what = outer
     st = NormalizeSettings()
