@@ -23,12 +23,10 @@ from typing import TextIO, TypeVar
 import numpy as np
 
 from dronecap.errors import InputError
+from dronecap.limits import check_frame_pixels, read_image
 
 T = TypeVar("T")
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
-# Largest image or video frame decoded, in pixels (DRONECAP_MAX_PIXELS raises it): 64 MP, far
-# above any drone camera, far below a decompression bomb (30000x30000 = 900 MP, 3.6 GB decoded).
-MAX_PIXELS = 64_000_000
 
 
 @dataclass
@@ -107,49 +105,6 @@ class VideoSource:
                 index += 1
         finally:
             cap.release()
-
-
-def image_header_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image file read from its header only (PIL's lazy open: no pixel
-    is decoded). InputError when it is not an image PIL can identify."""
-    from PIL import Image, UnidentifiedImageError
-
-    limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None  # check_frame_pixels decides
-    try:
-        with Image.open(path) as im:  # the header only
-            return int(im.width), int(im.height)
-    except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as err:
-        raise InputError(f"not a readable image: {err}", path) from None
-    finally:
-        Image.MAX_IMAGE_PIXELS = limit
-
-
-def check_frame_pixels(width: int, height: int, path: Path) -> None:
-    """Refuse to decode a ``width`` x ``height`` frame beyond :data:`MAX_PIXELS` (or
-    ``DRONECAP_MAX_PIXELS``), or one whose decoded copy would not fit in memory."""
-    from dronecap.datasets.safe_paths import check_memory
-
-    limit = int(os.environ.get("DRONECAP_MAX_PIXELS", MAX_PIXELS))
-    if width * height > limit:
-        raise InputError(
-            f"is {width}x{height} ({width * height / 1e6:.0f} MP), more than the "
-            f"{limit / 1e6:.0f} MP a frame may have (set DRONECAP_MAX_PIXELS to raise it)",
-            path,
-        )
-    check_memory(width * height * 4 * 4, "decoding this frame", "free some memory", path)
-
-
-def read_image(path: Path) -> np.ndarray | None:
-    """cv2.imread of ``path`` (uint8/uint16 [H, W(, C)], None when it does not decode) after
-    checking its header's size with :func:`check_frame_pixels`."""
-    import cv2
-
-    try:
-        w, h = image_header_size(path)
-    except InputError:
-        return None  # no readable header: reported as an image that does not decode
-    check_frame_pixels(w, h, path)
-    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
 
 
 class ImageFolderSource:

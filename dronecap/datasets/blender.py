@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dronecap.capture.decode import read_image
 from dronecap.datasets.bounds import carve_aabb, lookat_cube, near_far_from_aabb
 from dronecap.datasets.format import SPLITS, Dataset, Intrinsics, provenance, write_dataset
 from dronecap.datasets.safe_paths import inside_folder
 from dronecap.errors import InputError
+from dronecap.limits import read_image
 
 LUMA_BT601 = (0.299, 0.587, 0.114)
 BACKGROUND = 1.0  # white, per channel

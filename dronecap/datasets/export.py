@@ -179,8 +179,6 @@ def export_transforms(
         InputError: unreadable input, no poses/intrinsics, an inexpressible camera, or a
             sparse model whose images do not match the dataset's poses.
     """
-    import cv2
-
     from dronecap.datasets.export_colmap import scene_model
 
     in_path, out_dir = Path(in_path), Path(out_dir)
@@ -217,25 +215,10 @@ def export_transforms(
     problem = ngp_problem(cam)
     if problem and lists:
         notes.append(f"no per-split files: {problem}")
-    split_files = []
     with atomic_output(out_dir) as tmp:
-        (tmp / "images").mkdir(parents=True)
-        for i, f in enumerate(files):
-            # imencode + a plain write: a full disk raises (cv2.imwrite only returns False)
-            (tmp / f).write_bytes(cv2.imencode(".png", _bgr(ds, i))[1].tobytes())
-        (tmp / "transforms.json").write_text(json.dumps(meta, indent=1))
-        if not problem:
-            by_file = dict(zip(files, frames, strict=True))
-            for s, names in lists.items():
-                part = {**common, "frames": [by_file[f] for f in names]}
-                (tmp / f"transforms_{s}.json").write_text(json.dumps(part, indent=1))
-                split_files.append(f"transforms_{s}.json")
-        if rec.num_points3D():
-            rec.export_PLY(str(tmp / PLY_NAME))
-        for sub, write in ((COLMAP_BINARY, rec.write_binary), (COLMAP_TEXT, rec.write_text)):
-            (tmp / sub).mkdir(parents=True)
-            write(str(tmp / sub))
-        write_tum(tmp / TRAJECTORY, _times(ds), ds.poses)
+        split_files = _write_folder(
+            tmp, ds, files, meta, frames, lists, None if problem else common, rec
+        )
     return ExportResult(
         out_dir=out_dir,
         frames=ds.n,
@@ -245,6 +228,42 @@ def export_transforms(
         observations=int(rec.compute_num_observations()),
         notes=notes,
     )
+
+
+def _write_folder(
+    tmp: Path,
+    ds: Dataset,
+    files: list[str],
+    meta: dict[str, Any],
+    frames: list[dict[str, Any]],
+    lists: dict[str, list[str]],
+    common: dict[str, Any] | None,
+    rec: Any,
+) -> list[str]:
+    """Fill the export folder ``tmp``: images, transforms.json, the per-split files (when
+    ``common`` is given: the tools can read them), PLY, COLMAP models, TUM trajectory; returns
+    the per-split file names written."""
+    import cv2
+
+    split_files = []
+    (tmp / "images").mkdir(parents=True)
+    for i, f in enumerate(files):
+        # imencode + a plain write: a full disk raises (cv2.imwrite only returns False)
+        (tmp / f).write_bytes(cv2.imencode(".png", _bgr(ds, i))[1].tobytes())
+    (tmp / "transforms.json").write_text(json.dumps(meta, indent=1))
+    if common is not None:
+        by_file = dict(zip(files, frames, strict=True))
+        for s, names in lists.items():
+            part = {**common, "frames": [by_file[f] for f in names]}
+            (tmp / f"transforms_{s}.json").write_text(json.dumps(part, indent=1))
+            split_files.append(f"transforms_{s}.json")
+    if rec.num_points3D():
+        rec.export_PLY(str(tmp / PLY_NAME))
+    for sub, write in ((COLMAP_BINARY, rec.write_binary), (COLMAP_TEXT, rec.write_text)):
+        (tmp / sub).mkdir(parents=True)
+        write(str(tmp / sub))
+    write_tum(tmp / TRAJECTORY, _times(ds), ds.poses)
+    return split_files
 
 
 def _times(ds: Dataset) -> np.ndarray:

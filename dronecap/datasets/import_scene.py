@@ -223,7 +223,12 @@ def _inside_outer(
     """Bounds in the source frame: what the points (else the views) cover, clipped to the
     source's declared outer box (see :func:`scene_bounds`)."""
     from dronecap.datasets.bounds import coverage_points
-    from dronecap.datasets.normalize import NormalizeSettings, near_far, robust_box, statistical_inliers
+    from dronecap.datasets.normalize import (
+        NormalizeSettings,
+        near_far,
+        robust_box,
+        statistical_inliers,
+    )
 
     box, what = outer
     st = NormalizeSettings()

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import resource
 import stat
 from collections.abc import Iterator
 from contextvars import ContextVar
@@ -25,11 +24,11 @@ from pathlib import Path
 import h5py
 
 from dronecap.errors import InputError
+from dronecap.limits import check_memory, image_header_size
 
 # True while a command runs with --allow-outside.
 ALLOW_OUTSIDE: ContextVar[bool] = ContextVar("allow_outside", default=False)
 MAX_FRAMES = 20_000  # frames one imported file may list (DRONECAP_MAX_FRAMES raises it)
-MEMORY_SHARE = 0.7  # of the memory this process may still allocate, for the decoded images
 
 
 @contextlib.contextmanager
@@ -72,42 +71,9 @@ def check_frame_count(n: int, path: Path) -> None:
         )
 
 
-def available_bytes() -> int:
-    """Bytes this process may still allocate: the smaller of the machine's available memory and
-    what the address-space limit (``ulimit -v``) leaves."""
-    free = 1 << 62
-    with contextlib.suppress(OSError, ValueError, IndexError):
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                free = int(line.split()[1]) * 1024
-    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-    if soft != resource.RLIM_INFINITY:
-        used = 0
-        with contextlib.suppress(OSError, ValueError, IndexError):
-            for line in Path("/proc/self/status").read_text().splitlines():
-                if line.startswith("VmSize:"):
-                    used = int(line.split()[1]) * 1024
-        free = min(free, soft - used)
-    return max(free, 0)
-
-
-def check_memory(nbytes: int, what: str, option: str, path: Path | str | None = None) -> None:
-    """Refuse before allocating ``nbytes`` for ``what`` when it exceeds :data:`MEMORY_SHARE`
-    of :func:`available_bytes`; the line names the ``option`` that lowers it."""
-    budget = int(available_bytes() * MEMORY_SHARE)
-    if nbytes > budget:
-        raise InputError(
-            f"{what} would need about {nbytes / 1e9:.1f} GB, more than the {budget / 1e9:.1f} GB "
-            f"this process can use: {option}",
-            path,
-        )
-
-
 def check_import_memory(paths: list[Path], width: int, source: Path) -> None:
     """Estimate the memory of importing ``paths`` at ``width`` pixels (RGBA while decoding one
     full image, then RGB + alpha of every stored image) from the first image's header."""
-    from dronecap.capture.decode import image_header_size
-
     if not paths:
         return
     w0, h0 = image_header_size(paths[0])

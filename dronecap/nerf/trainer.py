@@ -141,8 +141,7 @@ class Trainer:
                 self.optimizer.state.pop(p, None)
             group["params"] = list(self.photometric.parameters())
 
-    # ----------------------------------------------------------------------------------------
-    # training
+    # --- training ---------------------------------------------------------------------------
     def _lr(self, step: int) -> float:
         """The model's learning rate at ``step`` (the photometric group takes
         ``photometric_lr_ratio`` times it)."""
@@ -157,8 +156,7 @@ class Trainer:
         """Random pixels of ``images_per_step`` random training images: rays and targets."""
         return draw_rays(
             self.images, self.alpha, self.poses, self.cameras, self.camera_index,
-            self.scene.background,
-            self.cfg.images_per_step, n_rays, self.generator,
+            self.scene.background, self.cfg.images_per_step, n_rays, self.generator,
         )  # fmt: skip
 
     def plan(self, steps: int) -> None:

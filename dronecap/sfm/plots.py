@@ -16,9 +16,10 @@ def trajectory_plot(
 ) -> Path | None:
     """Camera centres of ``posed.h5`` from above (x-y) and from the side (x-z) -> PNG.
 
-    A swarm's drones are drawn in a colour each. With ``gt_path`` (the simulator's flight.json / poses.json), the ground-truth centres of the
-    same source frames are aligned onto the recovered ones by a similarity (Umeyama) and drawn
-    too; the title gives the ATE as a percentage of the flight's extent.
+    A swarm's drones are drawn in a colour each. With ``gt_path`` (the simulator's flight.json /
+    poses.json), the ground-truth centres of the same source frames are aligned onto the
+    recovered ones by a similarity (Umeyama) and drawn too; the title gives the ATE as a
+    percentage of the flight's extent.
     """
     from dronecap.datasets.format import open_dataset
 
