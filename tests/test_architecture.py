@@ -51,7 +51,6 @@ KNOWN_LOOPS: frozenset[frozenset[str]] = frozenset()
 ALLOWED_LONG_MODULES: frozenset[str] = frozenset(
     {
         "dronecap/datasets/format.py",  # being split on branch swarm
-        "dronecap/federated/run.py",  # being split on branch fed
     }
 )
 ALLOWED_LONG_FUNCTIONS: frozenset[str] = frozenset(  # "path/to/module.py:function"
