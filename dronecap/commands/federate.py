@@ -51,6 +51,11 @@ class Settings(Base):
         help="with --quant-bits: fraction of hash-table rows a drone sends, the most changed "
         "(default 0.03)",
     )
+    compress: bool = setting(
+        False,
+        help="with --quant-bits 0: send every array losslessly compressed (byte shuffle + "
+        "deflate; ~14%% smaller fp16 updates)",
+    )
     plain_average: bool = setting(
         False,
         help="average every hash-table row over all drones (plain FedAvg); default: each row "
