@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -225,6 +226,27 @@ def load_ground_truth(
     return out
 
 
+def load_swarm_ground_truth(path: str | Path) -> dict[str, Path]:
+    """A swarm's ground-truth files by drone name, from the simulator's ``swarm.json``
+    (``{"drones": [{"name", "ground_truth"}, ...]}``, paths relative to its folder); an empty
+    dict when ``path`` is not such a file (a single flight's ground truth)."""
+    path = Path(path)
+    if path.suffix.lower() != ".json":
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError("ground-truth file not found", path) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise InputError(f"not JSON ({err})", path) from None
+    if not isinstance(data, dict) or "drones" not in data:
+        return {}
+    try:
+        return {str(d["name"]): path.parent / str(d["ground_truth"]) for d in data["drones"]}
+    except (KeyError, TypeError) as err:
+        raise InputError(f"drones[] need a name and a ground_truth ({err})", path) from None
+
+
 def _tum_ground_truth(
     path: Path, source_index: np.ndarray | None, timestamps: np.ndarray | None
 ) -> dict[int, np.ndarray]:
@@ -257,7 +279,8 @@ def accuracy_against(
     source_index: np.ndarray,
     gt: dict[int, np.ndarray],
     all_source_index: np.ndarray,
-) -> dict[str, float | int | str]:
+    groups: np.ndarray | None = None,
+) -> dict[str, Any]:
     """Accuracy record of recovered poses against ground truth, matched by source frame index.
 
     Args:
@@ -266,6 +289,7 @@ def accuracy_against(
         gt: source frame number -> ground-truth c2w [4, 4].
         all_source_index: int [N] source frame numbers of every input frame (the denominator of
             the registration rate counts those with ground truth).
+        groups: int [R] a group (drone) per registered frame: adds "per_group" errors.
 
     Returns:
         :meth:`PoseAccuracy.to_dict`, or {"error": why} when alignment is degenerate or no
@@ -278,6 +302,28 @@ def accuracy_against(
     est = np.asarray(c2w)[have]
     ref = np.stack([gt[int(source_index[i])] for i in have]) if have else np.zeros((0, 4, 4))
     try:
-        return pose_accuracy(est, ref, total_gt=total).to_dict()
+        record = pose_accuracy(est, ref, total_gt=total).to_dict()
     except DegenerateAlignment as err:
         return {"error": f"alignment impossible: {err}", "matched": len(have), "total_gt": total}
+    if groups is not None:
+        record["per_group"] = _group_errors(est, ref, np.asarray(groups)[have])
+    return record
+
+
+def _group_errors(est: np.ndarray, ref: np.ndarray, groups: np.ndarray) -> dict[str, Any]:
+    """Per group (a swarm's drone): frames, ATE (percent of the whole trajectory's extent) and
+    rotation error median, in the one alignment of every frame (the swarm's common frame)."""
+    sim = umeyama(est[:, :3, 3], ref[:, :3, 3])
+    aligned = sim.apply_poses(est)
+    err = np.linalg.norm(aligned[:, :3, 3] - ref[:, :3, 3], axis=1)
+    rot = rotation_angle_deg(np.einsum("nji,njk->nik", ref[:, :3, :3], aligned[:, :3, :3]))
+    extent = float(np.linalg.norm(ref[:, :3, 3].max(0) - ref[:, :3, 3].min(0)))
+    out = {}
+    for g in np.unique(groups):
+        m = groups == g
+        out[str(int(g))] = {
+            "matched": int(m.sum()),
+            "ate_percent": round(100.0 * float(np.sqrt((err[m] ** 2).mean())) / extent, 4),
+            "rot_median_deg": round(float(np.median(rot[m])), 4),
+        }
+    return out

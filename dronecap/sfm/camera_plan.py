@@ -14,6 +14,11 @@
   "flight.json", a frames.h5 without the attribute but with intrinsics, or ``--camera-from``),
   estimate otherwise.
 
+A swarm (frames.h5 with several drones) gets a camera per drone, all handled the same way: the
+drone's own calibrated camera when every drone has one (fixed by default), otherwise estimated
+per drone (shared by that drone's frames). ``--camera-from`` gives one drone's camera and is
+refused for a swarm.
+
 Pixel coordinates: dronecap cameras put the centre of pixel (u, v) at (u + 0.5, v + 0.5), as
 COLMAP does, so parameters go to COLMAP unchanged.
 """
@@ -23,6 +28,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from dronecap.camera import Camera
 from dronecap.camera.colmap import colmap_camera
@@ -40,6 +47,12 @@ class CameraPlan:
     mode: str  # "fixed" | "refine" | "estimate"
     camera: Camera | None  # start values; None: COLMAP guesses (SIMPLE_RADIAL, centred)
     source: str  # where the known camera came from ("calibration", a posed.h5 path, "none")
+    others: tuple[Camera | None, ...] = ()  # a swarm: the cameras of drones 1, 2, ... (same mode)
+
+    @property
+    def cameras(self) -> tuple[Camera | None, ...]:
+        """The start camera of every drone (one entry for a single flight)."""
+        return (self.camera, *self.others)
 
     @property
     def refine(self) -> bool:
@@ -56,6 +69,10 @@ class CameraPlan:
     def colmap(self) -> tuple[str, list[float]] | None:
         """(COLMAP model name, params in COLMAP's order) or None (see ``camera.colmap``)."""
         return None if self.camera is None else colmap_camera(self.camera)
+
+    def colmap_per_drone(self) -> list[tuple[str, list[float]] | None]:
+        """:meth:`colmap` of every drone's camera."""
+        return [None if k is None else colmap_camera(k) for k in self.cameras]
 
 
 def camera_of_posed(path: Path, width: int, height: int) -> Camera:
@@ -85,10 +102,30 @@ def plan_camera(ds: Dataset, mode: str, camera_from: Path | None = None) -> Came
         InputError: fixed/refine asked with no known camera, or a bad ``camera_from``.
     """
     h, w = ds.images.shape[1:3]
-    source = str(ds.attrs.get("camera_source", "calibration" if ds.intrinsics else "none"))
-    known = ds.intrinsics if source != "none" else None
+    drones = ds.drones()
+    n_drones = int(drones.max()) + 1 if len(drones) else 1
+    default = "calibration" if ds.intrinsics or ds.cameras else "none"
+    source = str(ds.attrs.get("camera_source", default))
+    if n_drones > 1:
+        if camera_from is not None:
+            raise InputError(
+                "--camera-from gives one drone's camera; these frames come from "
+                f"{n_drones} drones, each with its own camera in frames.h5"
+            )
+        firsts = [int(np.flatnonzero(drones == d)[0]) for d in range(n_drones)]
+        known = [ds.camera_of(i) if source != "none" else None for i in firsts]
+        if any(k is None for k in known):  # every drone estimated alike
+            known = [None] * n_drones
+        plans = [_plan(k, source, w, h, mode) for k in known]
+        return dataclasses.replace(plans[0], others=tuple(p.camera for p in plans[1:]))
+    known_one = ds.intrinsics if source != "none" else None
     if camera_from is not None:
-        known, source = camera_of_posed(Path(camera_from), w, h), str(camera_from)
+        known_one, source = camera_of_posed(Path(camera_from), w, h), str(camera_from)
+    return _plan(known_one, source, w, h, mode)
+
+
+def _plan(known: Camera | None, source: str, w: int, h: int, mode: str) -> CameraPlan:
+    """The plan of one camera (``known``: calibrated, or None) for ``w x h`` frames."""
     if mode == "auto":
         mode = "fixed" if known is not None else "estimate"
     if known is None:

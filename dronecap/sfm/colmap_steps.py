@@ -19,7 +19,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from dronecap.sfm.flights import flight_of
 from dronecap.sfm.options import FINEST_OCTAVE, SfmOptions
+from dronecap.sfm.retrieval import write_cross_flight_pairs
 
 TRAIN_DESCRIPTORS = 20000  # descriptors sampled to train the flight's visual vocabulary
 MIN_KEYPOINTS = 16  # a frame with fewer SIFT keypoints cannot register (reported as textureless)
@@ -30,13 +32,15 @@ def extract(
     image_dir: Path,
     names: list[str],
     opts: SfmOptions,
-    camera: tuple[str, list[float]] | None,
+    cameras: list[tuple[str, list[float]] | None],
 ) -> dict[str, int]:
-    """SIFT on CPU into ``database``, one camera shared by every image.
+    """SIFT on CPU into ``database``: one camera shared by every image, or for a swarm (names
+    in a folder per drone, ``reconstruct.image_names``) one camera per folder.
 
     Args:
-        camera: (COLMAP model name, params) when intrinsics are known (params in COLMAP's pixel
-            convention), or None to let COLMAP guess a SIMPLE_RADIAL camera from the image size.
+        cameras: per drone, (COLMAP model name, params) when intrinsics are known (params in
+            COLMAP's pixel convention), or None to let COLMAP guess a SIMPLE_RADIAL camera from
+            the image size.
 
     Returns:
         image name -> number of keypoints.
@@ -44,11 +48,11 @@ def extract(
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
-    if camera is None:
-        reader.camera_model = "SIMPLE_RADIAL"
-    else:
-        reader.camera_model = camera[0]
-        reader.camera_params = ",".join(f"{v:.10g}" for v in camera[1])
+    reader.camera_model = "SIMPLE_RADIAL"
+    if len(cameras) == 1 and cameras[0] is not None:
+        reader.camera_model = cameras[0][0]
+        reader.camera_params = ",".join(f"{v:.10g}" for v in cameras[0][1])
+    mode = pycolmap.CameraMode.SINGLE if len(cameras) == 1 else pycolmap.CameraMode.PER_FOLDER
     ext = pycolmap.FeatureExtractionOptions()
     ext.num_threads = opts.num_threads
     ext.sift.max_num_features = opts.max_features
@@ -58,13 +62,38 @@ def extract(
         database,
         image_dir,
         image_names=names,
-        camera_mode=pycolmap.CameraMode.SINGLE,
+        camera_mode=mode,
         reader_options=reader,
         extraction_options=ext,
         device=pycolmap.Device.cpu,
     )
     with pycolmap.Database.open(database) as db:
+        if len(cameras) > 1:
+            _set_folder_cameras(db, cameras)
         return {im.name: db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()}
+
+
+def _set_folder_cameras(db: Any, cameras: list[tuple[str, list[float]] | None]) -> None:
+    """Give each drone's folder camera its known model and parameters (``cameras`` per drone;
+    None: COLMAP's guess stays)."""
+    import pycolmap
+
+    done: set[int] = set()
+    for im in db.read_all_images():
+        known = cameras[flight_of(im.name)]
+        if known is None or im.camera_id in done:
+            continue
+        old = db.read_camera(im.camera_id)
+        cam = pycolmap.Camera(
+            model=known[0],
+            width=old.width,
+            height=old.height,
+            params=np.asarray(known[1], np.float64),
+            camera_id=im.camera_id,
+        )
+        cam.has_prior_focal_length = True
+        db.update_camera(cam)
+        done.add(im.camera_id)
 
 
 def extract_finer_when_sparse(
@@ -72,7 +101,7 @@ def extract_finer_when_sparse(
     image_dir: Path,
     names: list[str],
     opts: SfmOptions,
-    camera: tuple[str, list[float]] | None,
+    cameras: list[tuple[str, list[float]] | None],
 ) -> tuple[dict[str, int], int]:
     """:func:`extract` at ``opts.first_octave``; when the frames' median keypoint count is
     under ``opts.finer_below``, the database is built again one octave finer (never finer
@@ -82,13 +111,13 @@ def extract_finer_when_sparse(
         (image name -> number of keypoints, the first octave the database holds).
     """
     octave = opts.first_octave
-    keypoints = extract(database, image_dir, names, opts, camera)
+    keypoints = extract(database, image_dir, names, opts, cameras)
     median = float(np.median(list(keypoints.values()))) if keypoints else 0.0
     if octave > FINEST_OCTAVE and median < opts.finer_below:
         database.unlink()
         octave -= 1
         finer = dataclasses.replace(opts, first_octave=octave)
-        keypoints = extract(database, image_dir, names, finer, camera)
+        keypoints = extract(database, image_dir, names, finer, cameras)
     return keypoints, octave
 
 
@@ -136,8 +165,15 @@ def _keypoints(rows: np.ndarray) -> Any:
     )
 
 
-def match(database: Path, work: Path, opts: SfmOptions, n_frames: int) -> dict[str, Any]:
-    """Match and geometrically verify image pairs; returns what was done (for the report)."""
+def match(
+    database: Path, work: Path, opts: SfmOptions, n_frames: int, swarm: bool = False
+) -> dict[str, Any]:
+    """Match and geometrically verify image pairs; returns what was done (for the report).
+
+    ``swarm`` (several drones' flights): after the flights' own pairs, every frame is also
+    matched with the ``opts.cross_num_images`` most alike frames of the other drones' flights
+    (:mod:`dronecap.sfm.retrieval`): the pairs that link one drone's flight to another's.
+    """
     import pycolmap
 
     kind = opts.resolved_matcher(n_frames)
@@ -169,6 +205,17 @@ def match(database: Path, work: Path, opts: SfmOptions, n_frames: int) -> dict[s
         pycolmap.match_sequential(
             database, **common, pairing_options=pairing, device=pycolmap.Device.cpu
         )
+    if swarm and kind != "exhaustive":  # exhaustive matching has every pair already
+        t = time.perf_counter()
+        pair_file = work / "cross_flight_pairs.txt"
+        n_pairs = write_cross_flight_pairs(database, pair_file, opts.cross_num_images, opts.seed)
+        imported = pycolmap.ImportedPairingOptions()
+        imported.match_list_path = str(pair_file)
+        pycolmap.match_image_pairs(
+            database, **common, pairing_options=imported, device=pycolmap.Device.cpu
+        )
+        info["cross_flight_pairs"] = n_pairs
+        info["cross_flight_seconds"] = round(time.perf_counter() - t, 3)
     with pycolmap.Database.open(database) as db:
         info["matched_pairs"] = db.num_matched_image_pairs()
         info["verified_pairs"] = db.num_verified_image_pairs()
@@ -239,6 +286,7 @@ def incremental_map(
     on_register: Callable[[int], None],
     input_path: Path | None = None,
     init_pair: tuple[int, int] | None = None,
+    image_names: list[str] | None = None,
 ) -> dict[str, dict[str, float]]:
     """Run COLMAP's incremental mapper; writes models to ``out_dir/<k>``.
 
@@ -248,6 +296,7 @@ def incremental_map(
         input_path: resume from this model (extension pass, relaxed registration thresholds).
         init_pair: database image ids of the initial pair (default: COLMAP chooses). One model
             only: COLMAP would start every further model from the same pair.
+        image_names: map only these images (default: all).
 
     Returns:
         model folder -> {"frames": registered frames, "reproj": mean reprojection error, px}.
@@ -259,6 +308,8 @@ def incremental_map(
     if init_pair is not None:
         options.init_image_id1, options.init_image_id2 = init_pair
         options.multiple_models = False
+    if image_names is not None:
+        options.image_names = image_names
     models = pycolmap.incremental_mapping(
         database,
         image_dir,

@@ -43,6 +43,7 @@ class SfmOptions:
     loop_period: int = 5  # query the visual index with every this-many-th frame
     loop_num_images: int = 15  # frames retrieved per query
     visual_words: int = 512  # size of the flight's own visual vocabulary (upper bound)
+    cross_num_images: int = 5  # a swarm: frames of other drones' flights matched per frame
     max_epipolar_error: float = 4.0  # RANSAC threshold of two-view verification, pixels
     max_h_inlier_ratio: float = 0.8  # pairs whose homography explains more are called planar
     # --- mapping ---
@@ -99,8 +100,10 @@ class SfmOptions:
             raise ValueError(f"overlap must be at least 1, got {self.overlap}")
         if not 0.0 <= self.min_registration <= 1.0:
             raise ValueError(f"min_registration must be in [0, 1], got {self.min_registration}")
-        if self.loop_period < 1 or self.loop_num_images < 1 or self.visual_words < 16:
-            raise ValueError("loop_period and loop_num_images must be >= 1, visual_words >= 16")
+        if min(self.loop_period, self.loop_num_images, self.cross_num_images) < 1:
+            raise ValueError("loop_period, loop_num_images and cross_num_images must be >= 1")
+        if self.visual_words < 16:
+            raise ValueError(f"visual_words must be at least 16, got {self.visual_words}")
         if self.ba_global_ratio <= 1.0 or self.ba_refinements < 1 or self.time_cap < 0:
             raise ValueError("ba_global_ratio must be > 1, ba_refinements >= 1, time_cap >= 0")
         if min(self.max_reproj_error, self.abs_pose_max_error, self.tri_max_angle_error) <= 0:

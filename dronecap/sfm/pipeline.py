@@ -29,9 +29,16 @@ from dronecap.datasets.format import Dataset, open_dataset, provenance, write_da
 from dronecap.datasets.normalize import apply_to_points, apply_to_poses, near_far, normalize_scene
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, sha256_file
-from dronecap.sfm.align import DegenerateAlignment, accuracy_against, load_ground_truth
+from dronecap.sfm.align import (
+    DegenerateAlignment,
+    accuracy_against,
+    load_ground_truth,
+    load_swarm_ground_truth,
+)
 from dronecap.sfm.camera_plan import CameraPlan, plan_camera
 from dronecap.sfm.colmap_steps import MIN_KEYPOINTS
+from dronecap.sfm.drones import drone_records
+from dronecap.sfm.flights import flight_of
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.priors import fit_to_priors, read_priors
 from dronecap.sfm.reconstruct import ColmapResult
@@ -66,12 +73,18 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         for i in missing
     ]
     match_info = {k: v for k, v in summary.get("match", {}).items() if k != "verified_partners"}
+    flights = summary.get("flights")
+    # a swarm: the rate counts the frames of the drones linked into the model (the others are
+    # reported by name with their own model)
+    linked = int(np.isin(ds.drones(), flights["main"]).sum()) if flights else n
     return {
         "status": "ok",
         "message": summary.get("stopped") or "",
         "frames_total": n,
+        "frames_linked": linked,
         "registered": len(registered),
-        "registration_rate": len(registered) / max(n, 1),
+        "registration_rate": len(registered) / max(linked, 1),
+        "flights": flights,
         "dropped": dropped,
         "dropped_runs": dropped_runs(missing, n),
         "models": summary.get("models", {}),
@@ -99,7 +112,7 @@ class Placed:
     aabb: np.ndarray  # float64 [2, 3]
     scene_from_model: np.ndarray  # float64 [4, 4] similarity, scene from COLMAP's frame
     world_from_scene: np.ndarray | None  # float64 [4, 4] to the priors' world (metres, z up)
-    camera: Camera  # the camera of posed.h5
+    cameras: list[Camera]  # the camera of every drone (one for a single flight)
     kept_points: np.ndarray  # bool [P] the model's points (point-id order) kept for the bounds
 
 
@@ -133,11 +146,13 @@ def run_sfm(
         raise InputError(f"only {ds.n} frame(s); SfM needs at least {MIN_FRAMES}", frames_path)
     plan = plan_camera(ds, opts.camera, camera_from)
     known = None
-    if plan.mode == "estimate" and camera_from is None and ds.intrinsics is not None:
-        if ds.attrs.get("camera_source", "calibration") != "none":
-            known = plan_camera(ds, "fixed")
+    if plan.mode == "estimate" and camera_from is None:
+        known = plan_camera(ds, "auto")  # the calibrated camera(s) as a remedy, when known
+        known = known if known.mode == "fixed" else None
     sfm_dir.mkdir(parents=True, exist_ok=True)
-    best, attempts = reconstruct_with_retries(ds.images, sfm_dir, opts, plan, known, progress)
+    best, attempts = reconstruct_with_retries(
+        ds.images, sfm_dir, opts, plan, known, progress, ds.drones()
+    )
     res, rec = best.result, best.result.reconstruction
     registered = np.zeros(0, np.int64) if rec is None else model_arrays(rec, res.names)[0]
     report = build_report(res, ds, registered)
@@ -173,13 +188,29 @@ def run_sfm(
     return report
 
 
-def _ground_truth(ds: Dataset, gt_path: Path | None) -> Any:
-    """The ground truth of ``ds``'s frames from ``gt_path`` (None without one)."""
+def _ground_truth(ds: Dataset, gt_path: Path | None) -> dict[int, np.ndarray] | None:
+    """The ground truth of ``ds``'s frames from ``gt_path``: frame index -> c2w [4, 4] (None
+    without a path). A swarm's ``swarm.json`` gives every drone's file, found by drone name."""
     if gt_path is None:
         return None
     src = ds.source_index if ds.source_index is not None else np.arange(ds.n)
     times = ds.timestamps if ds.timestamps is not None else np.arange(ds.n, dtype=float)
-    return load_ground_truth(gt_path, src, times)
+    drones = ds.drones()
+    files = load_swarm_ground_truth(gt_path)
+    if not files:
+        if drones.max(initial=0) > 0:
+            raise InputError("these frames come from several drones: give the swarm.json", gt_path)
+        gt = load_ground_truth(gt_path, src, times)
+        return {i: gt[int(s)] for i, s in enumerate(src) if int(s) in gt}
+    out: dict[int, np.ndarray] = {}
+    for d in np.unique(drones):
+        name = ds.drone_name(int(d))
+        if name not in files:
+            raise InputError(f"has no ground truth for drone {name!r}", gt_path)
+        mine = np.flatnonzero(drones == d)
+        gt = load_ground_truth(files[name], src[mine], times[mine])
+        out.update({int(i): gt[int(src[i])] for i in mine if int(src[i]) in gt})
+    return out
 
 
 def place_scene(
@@ -195,6 +226,8 @@ def place_scene(
     the report's priors, camera, quality, scene and accuracy (with ``gt``) records."""
     t = time.perf_counter()
     idx, c2w, points, seen = model_arrays(rec, names)
+    drones = ds.drones()
+    swarm = len(plan.cameras) > 1
     priors = read_priors(ds)
     metric, up = np.eye(4), None
     if priors is not None:
@@ -206,18 +239,15 @@ def place_scene(
     poses = apply_to_poses(norm.matrix, c2w_w)
     pts = apply_to_points(norm.matrix, points_w)
     nf = near_far(poses, norm.aabb, [pts[s] for s in seen])
-    cam = rec.cameras[rec.images[rec.reg_image_ids()[0]].camera_id]
-    k = camera_from_colmap(cam.model_name, np.asarray(cam.params), cam.width, cam.height)
-    if plan.mode == "fixed":  # the known camera exactly as given (no text round trip)
-        k = plan.camera
+    cameras = model_cameras(rec, names, plan)
     report["times"]["normalize"] = round(time.perf_counter() - t, 3)
-    report["camera"] = _camera_report(k, plan)
+    report["camera"] = _camera_report(cameras[0], plan)
     report["quality"] = {
         "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
         "mean_track_length": float(rec.compute_mean_track_length()),
         "points": int(len(points)),
         "points_kept": int(norm.inliers.sum()),
-        "pose_jumps": pose_jumps(c2w[:, :3, 3], idx),
+        "pose_jumps": pose_jumps(c2w[:, :3, 3], idx, drones[idx]),
     }
     report["scene"] = {
         "normalization": (norm.matrix @ metric).tolist(),
@@ -231,8 +261,10 @@ def place_scene(
         nf = np.concatenate([nf, near_far(poses[len(idx) :], norm.aabb, [])])
         report["priors"]["fallback_frames"] = fallback.tolist()
     if gt is not None:  # in the frame before normalisation (metres with priors: scale 1)
-        src = ds.source_index if ds.source_index is not None else np.arange(ds.n)
-        report["accuracy"] = accuracy_against(c2w_w, src[idx], gt, src)
+        groups = ds.drones()[idx] if swarm else None
+        report["accuracy"] = accuracy_against(c2w_w, idx, gt, np.arange(ds.n), groups)
+    if swarm:
+        report["drones"] = drone_records(ds, idx, cameras, plan, report)
     order = np.argsort(np.concatenate([idx, fallback]), kind="stable")
     frames = np.concatenate([idx, fallback])[order]
     return Placed(
@@ -243,9 +275,27 @@ def place_scene(
         norm.aabb,
         norm.matrix @ metric,
         None if up is None else np.linalg.inv(norm.matrix),
-        k,
+        cameras,
         norm.inliers,
     )
+
+
+def model_cameras(rec: Any, names: list[str], plan: CameraPlan) -> list[Camera]:
+    """The camera of every drone (one for a single flight): the known one exactly as given
+    when fixed (no text round trip), else the model's camera of the drone's frames (the start
+    camera for a drone with no registered frame)."""
+    if plan.mode == "fixed":
+        return [k for k in plan.cameras if k is not None]
+    by_drone: dict[int, Camera] = {}
+    for image_id in rec.reg_image_ids():
+        d = flight_of(rec.images[image_id].name)
+        if d not in by_drone:
+            cam = rec.cameras[rec.images[image_id].camera_id]
+            by_drone[d] = camera_from_colmap(
+                cam.model_name, np.asarray(cam.params), cam.width, cam.height
+            )
+    start = next(iter(by_drone.values()))
+    return [by_drone.get(d, k or start) for d, k in enumerate(plan.cameras)]
 
 
 def posed_dataset(
@@ -262,7 +312,11 @@ def posed_dataset(
     posed = ds.subset(placed.frames)
     posed.kind = "posed"
     posed.poses = placed.poses
-    posed.intrinsics = placed.camera
+    if len(placed.cameras) > 1:  # a camera per drone, the drone's index into the table
+        posed.set_cameras(placed.cameras, ds.drones()[placed.frames])
+    else:
+        posed.cameras = posed.camera_index = None
+        posed.intrinsics = placed.cameras[0]
     posed.aabb = placed.aabb
     posed.near_far = placed.near_far
     posed.normalization = placed.scene_from_model

@@ -32,7 +32,9 @@ from dronecap.sfm.colmap_steps import (
     initial_pairs,
     match,
 )
+from dronecap.sfm.flights import flight_of, image_names
 from dronecap.sfm.isolate import run_isolated
+from dronecap.sfm.links import separate_unlinked
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.report import pose_jumps
 
@@ -42,24 +44,19 @@ PAIR_TRIES = 3  # our initial pairs tried in turn (best first) until one starts 
 NARROW_PAIR_MARGIN = 0.8  # a pair under init_min_tri_angle starts with this x its measured angle
 
 
-def image_names(n: int) -> list[str]:
-    """Zero-padded PNG names in flight order: 00000.png, 00001.png, ..."""
-    width = max(5, len(str(max(n - 1, 0))))
-    return [f"{i:0{width}d}.png" for i in range(n)]
-
-
 def colmap_job(
     emit: Callable[[tuple[Any, ...]], None],
     work: str,
     names: list[str],
     options: dict[str, Any],
-    camera: tuple[str, list[float]] | None,
+    cameras: list[tuple[str, list[float]] | None],
     refine_camera: bool,
     refine_after: bool = False,
 ) -> dict[str, Any]:
     """Child-process body: extract, match, map, extend. Returns a JSON-able summary.
 
-    ``camera``: (COLMAP model, params) to start from, or None (COLMAP guesses SIMPLE_RADIAL);
+    ``cameras``: per drone (image folder, :func:`image_names`), (COLMAP model, params) to start
+    from, or None (COLMAP guesses SIMPLE_RADIAL);
     ``refine_camera``: whether mapping refines focal length and distortion; ``refine_after``:
     whether a final bundle adjustment of the chosen model refines them (principal point fixed).
 
@@ -80,7 +77,7 @@ def colmap_job(
 
     t = phase("extract")
     out["keypoints"], out["first_octave"] = extract_finer_when_sparse(
-        db, images, names, opts, camera
+        db, images, names, opts, cameras
     )
     times["extract"] = time.perf_counter() - t
     usable = [n for n in names if out["keypoints"].get(n, 0) >= MIN_KEYPOINTS]
@@ -89,7 +86,8 @@ def colmap_job(
         return out
 
     t = phase("match")
-    out["match"] = match(db, root, opts, len(names))
+    n_drones = len(cameras)
+    out["match"] = match(db, root, opts, len(names), swarm=n_drones > 1)
     times["match"] = time.perf_counter() - t
     if out["match"]["verified_pairs"] == 0:
         out["stopped"] = "no pair of frames could be matched with a consistent geometry"
@@ -128,6 +126,12 @@ def colmap_job(
     size = _settle(
         out, found, root, names, len(usable), opts, refine_camera, deadline, phase, on_register
     )
+    if n_drones > 1:
+        t = phase("separate unlinked flights", size)
+        out["best"], out["flights"] = separate_unlinked(
+            db, images, root, Path(out["best"]), names, n_drones, opts, refine_camera, on_register
+        )
+        times["unlinked"] = time.perf_counter() - t
     out["bend_check"] = rotation_disagreement(db, Path(out["best"]))
     if refine_after:
         t = phase("refine camera", size)
@@ -232,14 +236,17 @@ def map_from_pairs(
 
 
 def jump_frames(model: Path, names: list[str]) -> list[int]:
-    """Frame indices (into ``names``) of ``model`` that :func:`pose_jumps` flags."""
+    """Frame indices (into ``names``) of ``model`` that :func:`pose_jumps` flags (each drone's
+    flight on its own)."""
     import pycolmap
 
     rec = pycolmap.Reconstruction(model)
     pos = {n: i for i, n in enumerate(names)}
     regs = sorted((pos[rec.images[i].name], i) for i in rec.reg_image_ids())
     centres = np.array([rec.images[i].projection_center() for _, i in regs]).reshape(-1, 3)
-    return pose_jumps(centres, np.array([f for f, _ in regs], dtype=np.int64))
+    frames = np.array([f for f, _ in regs], dtype=np.int64)
+    flights = np.array([flight_of(names[f]) for f in frames], dtype=np.int64)
+    return pose_jumps(centres, frames, flights)
 
 
 def remap_jumps(
@@ -319,8 +326,10 @@ def reconstruct(
     opts: SfmOptions,
     plan: CameraPlan,
     progress: bool = True,
+    drones: np.ndarray | None = None,
 ) -> ColmapResult:
-    """Run COLMAP on ``images`` (uint8 [N, H, W, C], flight order) inside ``work``.
+    """Run COLMAP on ``images`` (uint8 [N, H, W, C], flight order) inside ``work``; ``drones``
+    (int [N]) gives every frame's drone for a swarm (a camera per drone, ``plan.cameras``).
 
     The frames are written gray (contrast-normalised first when ``opts.clahe``: the same
     :func:`dronecap.capture.contrast.normalize_contrast` ingest uses); ``plan`` is the camera.
@@ -337,7 +346,9 @@ def reconstruct(
     if work.exists():
         shutil.rmtree(work)
     (work / "images").mkdir(parents=True)
-    names = image_names(len(images))
+    names = image_names(np.zeros(len(images), np.int64) if drones is None else drones)
+    for folder in {Path(n).parent for n in names}:
+        (work / "images" / folder).mkdir(exist_ok=True)
     t = time.perf_counter()
     for name, im in zip(names, images, strict=True):
         gray = im[..., 0] if im.shape[-1] == 1 else cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)
@@ -360,7 +371,11 @@ def reconstruct(
             count[0] += ev[1]
 
     job = {"work": str(work), "names": names, "options": opts.to_dict()}
-    job.update(camera=plan.colmap(), refine_camera=plan.refine, refine_after=plan.refine_after)
+    job.update(
+        cameras=plan.colmap_per_drone(),
+        refine_camera=plan.refine,
+        refine_after=plan.refine_after,
+    )
     try:
         summary = run_isolated(
             "dronecap.sfm.reconstruct:colmap_job",

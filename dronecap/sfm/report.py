@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from dronecap.sfm.drones import drone_lines
+
 ADVICE = (
     "try: more sequential overlap (--overlap 20) or --matcher exhaustive; keep more frames at "
     "ingest (fewer dropped, less motion between frames); give known intrinsics in frames.h5; "
@@ -58,12 +60,16 @@ def dropped_runs(dropped: np.ndarray, n: int) -> list[dict[str, Any]]:
 JUMP_FACTOR = 5.0  # a frame this many median steps away from both flight neighbours is a jump
 
 
-def pose_jumps(centres: np.ndarray, frames: np.ndarray) -> list[int]:
+def pose_jumps(
+    centres: np.ndarray, frames: np.ndarray, flights: np.ndarray | None = None
+) -> list[int]:
     """Registered frames whose camera leaves the path of its neighbours and comes back.
 
     Args:
         centres: float [R, 3] camera centres of the registered frames, in flight order.
         frames: int [R] their frame indices.
+        flights: int [R] the drone of each frame (a swarm: each flight is checked on its own,
+            in frame order within it); None: one flight.
 
     Returns:
         frame indices k whose distance to both the previous and the next registered frame exceeds
@@ -72,6 +78,12 @@ def pose_jumps(centres: np.ndarray, frames: np.ndarray) -> list[int]:
         Himax test_15: one frame 3 units sideways and 15 deg rotated between neighbours 0.7
         units apart, a rotation-translation ambiguity of a forward view of distant points).
     """
+    if flights is not None and len(np.unique(flights)) > 1:
+        return sorted(
+            j
+            for d in np.unique(flights)
+            for j in pose_jumps(np.asarray(centres)[flights == d], np.asarray(frames)[flights == d])
+        )
     c = np.asarray(centres, dtype=np.float64)
     if len(c) < 3:
         return []
@@ -132,6 +144,7 @@ def format_report(report: dict[str, Any]) -> str:
             f"  camera {cam['model']} ({how}{src}) fx={cam['fx']:.2f} fy={cam['fy']:.2f} "
             f"cx={cam['cx']:.2f} cy={cam['cy']:.2f}{dist}"
         )
+    lines.extend(drone_lines(report))
     lines.extend(_initial_pair_lines(report.get("init_pair") or {}))
     attempts = report.get("attempts") or []
     if len(attempts) > 1:

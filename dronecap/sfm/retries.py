@@ -93,11 +93,13 @@ def reconstruct_with_retries(
     plan: CameraPlan,
     known: CameraPlan | None,
     progress: bool = True,
+    drones: np.ndarray | None = None,
 ) -> tuple[Attempt, list[Attempt]]:
-    """The best attempt and all attempts (work folders ``work``, ``work_retry1``, ...)."""
+    """The best attempt and all attempts (work folders ``work``, ``work_retry1``, ...);
+    ``drones`` (int [N]): every frame's drone, for a swarm."""
     n = len(images)
     t = time.perf_counter()
-    first = Attempt([], reconstruct(images, sfm_dir / "work", opts, plan, progress), 0.0)
+    first = Attempt([], reconstruct(images, sfm_dir / "work", opts, plan, progress, drones), 0.0)
     first.seconds = time.perf_counter() - t
     attempts, best = [first], first
     # the octave SIFT ran at (finer than asked when the frames had few keypoints)
@@ -113,7 +115,7 @@ def reconstruct_with_retries(
         if progress:
             print(f"sfm: {best.registered}/{n} frames registered; retrying with {name}")
         t = time.perf_counter()
-        res = reconstruct(images, sfm_dir / f"work_retry{k}", o, p, progress)
+        res = reconstruct(images, sfm_dir / f"work_retry{k}", o, p, progress, drones)
         att = Attempt([*best.remedies, name], res, time.perf_counter() - t)
         attempts.append(att)
         if att.registered > best.registered:  # a remedy "worked" when more frames register
