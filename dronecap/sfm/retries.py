@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from dronecap.sfm.camera_plan import CameraPlan
+from dronecap.sfm.flights import flight_of
 from dronecap.sfm.options import FINEST_OCTAVE, SfmOptions
 from dronecap.sfm.reconstruct import ColmapResult, reconstruct
 
@@ -42,6 +43,15 @@ class Attempt:
         """Frames in the chosen model (0 when none)."""
         rec = self.result.reconstruction
         return 0 if rec is None else int(rec.num_reg_images())
+
+    @property
+    def linked_frames(self) -> int:
+        """Frames of the flights linked into the model (a swarm's unlinked drones' frames
+        cannot register in it), all frames for a single flight."""
+        flights = self.result.summary.get("flights")
+        if not flights:
+            return len(self.result.names)
+        return sum(flight_of(n) in flights["main"] for n in self.result.names)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able summary for the report."""
@@ -107,7 +117,7 @@ def reconstruct_with_retries(
     best_opts, best_plan = _set(opts, first_octave=octave), plan
     t_retry = time.perf_counter()
     for k, (name, change) in enumerate(remedies(best_opts, plan, known, n), start=1):
-        if best.registered >= opts.retry_below * n:
+        if best.registered >= opts.retry_below * best.linked_frames:
             break
         if time.perf_counter() - t_retry > opts.retry_budget or opts.time_cap > 0:
             break  # a time-capped run keeps its model so far: no retries
