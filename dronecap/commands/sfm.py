@@ -20,6 +20,7 @@ OPTION_HELP = {
     "overlap": "sequential: frames matched after each frame",
     "loop_period": "loop detection: query every this-many-th frame",
     "loop_num_images": "loop detection: frames retrieved per query",
+    "cross_num_images": "a swarm: frames of the other drones' flights matched with each frame",
     "min_registration": "fail below this registered fraction",
     "seed": "mapper random seed",
     "init_trials": "2: also map from COLMAP's initial pair; keep best",
