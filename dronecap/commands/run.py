@@ -37,7 +37,7 @@ def _pipelines_file(args: Settings) -> Path:
     here = Path(args.workdir) / "pipelines.yaml"
     if here.exists():
         return here
-    # The file shipped with dronecap (package data; in the repo a link to the root's file).
+    # The file shipped with dronecap (package data; the repo root's pipelines.yaml links to it).
     from importlib.resources import files
 
     return Path(str(files("dronecap") / "pipelines.yaml"))
