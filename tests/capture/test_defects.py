@@ -51,6 +51,11 @@ def test_uniform_backdrop_is_not_a_tear(frames):
     prev[150:], cur[150:] = 255, 255
     assert torn_row(cur, prev) is None
     assert torn_row(np.full((H, W), 255, np.uint8), None) is None  # all flat: not torn
+    # the object moved up out of the bottom rows: white now where it was textured before
+    cur[120:] = 255
+    assert torn_row(cur, frames[0]) is None
+    cur[120:] = 0  # the same rows black: a lost part
+    assert torn_row(cur, frames[0]) == 120
 
 
 def test_upside_down_frame_among_normal_ones(frames):
