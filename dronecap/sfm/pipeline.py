@@ -40,7 +40,7 @@ from dronecap.sfm.colmap_steps import MIN_KEYPOINTS
 from dronecap.sfm.drones import drone_records
 from dronecap.sfm.flights import flight_of
 from dronecap.sfm.options import SfmOptions
-from dronecap.sfm.priors import fit_to_priors, read_priors
+from dronecap.sfm.priors import fit_swarm_to_priors, fit_to_priors, read_priors
 from dronecap.sfm.reconstruct import ColmapResult
 from dronecap.sfm.report import ADVICE, drop_reason, dropped_runs, format_report, pose_jumps
 from dronecap.sfm.retries import reconstruct_with_retries
@@ -231,7 +231,7 @@ def place_scene(
     priors = read_priors(ds)
     metric, up = np.eye(4), None
     if priors is not None:
-        report["priors"], metric = _align_to_priors(c2w, idx, priors)
+        report["priors"], metric = _align_to_priors(c2w, idx, priors, drones)
         if "error" not in report["priors"]:
             up = np.array([0.0, 0.0, 1.0])
     c2w_w, points_w = apply_to_poses(metric, c2w), apply_to_points(metric, points)
@@ -255,7 +255,8 @@ def place_scene(
         "near_far_median": np.median(nf, 0).tolist(),
     }
     fallback = np.zeros(0, np.int64)
-    if opts.prior_fallback and priors is not None and "error" not in report["priors"]:
+    shared = priors is not None and report["priors"].get("shared_frame", True)
+    if opts.prior_fallback and shared and "error" not in report["priors"]:
         fallback = np.setdiff1d(np.flatnonzero(priors[1]), idx)
         poses = np.concatenate([poses, apply_to_poses(norm.matrix, priors[0][fallback])])
         nf = np.concatenate([nf, near_far(poses[len(idx) :], norm.aabb, [])])
@@ -345,9 +346,10 @@ def posed_dataset(
 
 
 def _align_to_priors(
-    c2w: np.ndarray, idx: np.ndarray, priors: tuple[np.ndarray, np.ndarray]
+    c2w: np.ndarray, idx: np.ndarray, priors: tuple[np.ndarray, np.ndarray], drones: np.ndarray
 ) -> tuple[dict[str, Any], np.ndarray]:
-    """Fit the registered poses [R, 4, 4] (frames ``idx``) to their telemetry priors.
+    """Fit the registered poses [R, 4, 4] (frames ``idx``) to their telemetry priors; a swarm
+    (``drones``: int [N], the drone of every frame) through :func:`fit_swarm_to_priors`.
 
     Returns the report's "priors" record and the 4x4 similarity (identity when the fit fails).
     """
@@ -357,17 +359,18 @@ def _align_to_priors(
         "frames_with_prior": int(valid.sum()),
         "registered_with_prior": int(have.sum()),
     }
+    own, theirs = c2w[have], prior_c2w[idx[have]]
     try:
-        fit = fit_to_priors(c2w[have], prior_c2w[idx[have]])
+        if drones.max(initial=0) > 0:
+            fit, info["shared_frame"] = fit_swarm_to_priors(own, theirs, drones[idx[have]])
+        else:
+            fit = fit_to_priors(own, theirs)
     except DegenerateAlignment as err:
         info["error"] = f"not aligned to the priors: {err}"
         return info, np.eye(4)
-    info.update(
-        method=fit.method,
-        used=int(fit.used.sum()),
-        scale_m_per_unit=fit.sim.scale,
-        **fit.agreement(c2w[have], prior_c2w[idx[have]]),
-    )
+    info.update(method=fit.method, used=int(fit.used.sum()), scale_m_per_unit=fit.sim.scale)
+    if info.get("shared_frame", True):  # positions compare only in one shared frame
+        info.update(fit.agreement(own, theirs))
     return info, fit.sim.matrix()
 
 

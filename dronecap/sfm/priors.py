@@ -26,6 +26,10 @@ from dronecap.datasets.format import Dataset
 from dronecap.sfm.align import DegenerateAlignment, Similarity, rotation_angle_deg, umeyama
 
 TRIM_FACTOR = 3.0  # residuals above this x the median are outliers (refit without them)
+# A swarm: the drones' telemetry is taken to share one frame unless one similarity for all of
+# them leaves this many times the residual of a similarity per drone (and over SHARED_MIN_M).
+SHARED_FACTOR = 3.0
+SHARED_MIN_M = 0.05
 MIN_SPREAD = 0.05  # second/first singular value of the centres below this: use orientations
 MIN_PRIORS = 3  # registered frames with a valid prior needed for a fit
 
@@ -107,3 +111,58 @@ def _orientation_fit(c2w_sfm: np.ndarray, prior_c2w: np.ndarray) -> Similarity:
         raise DegenerateAlignment("the recovered camera centres all coincide (no baseline)")
     scale = float((xs * xd).sum() / denom)
     return Similarity(rot, dst.mean(0) - scale * src.mean(0), scale)
+
+
+def fit_swarm_to_priors(
+    c2w_sfm: np.ndarray, prior_c2w: np.ndarray, drones: np.ndarray
+) -> tuple[PriorFit, bool]:
+    """:func:`fit_to_priors` for a swarm (``drones``: int [R], the drone of every frame).
+
+    When the drones' telemetry shares one frame (external positioning, or a common take-off
+    frame) one similarity fits all of them and is returned with True. When every drone's
+    onboard state has its own origin and heading, one similarity cannot fit them all (its
+    residual exceeds :data:`SHARED_FACTOR` x the per-drone fits'); the priors then still give
+    the metric scale (median of the per-drone scales) and gravity (the mean of the up direction
+    each drone's fit gives in the SfM frame, turned onto +z), returned with False: metres and
+    z up, but not the telemetry's position and heading.
+
+    Raises:
+        DegenerateAlignment: no drone (and not all together) has enough priors for a fit.
+    """
+    together = fit_to_priors(c2w_sfm, prior_c2w)
+    own = {}
+    for d in np.unique(drones):
+        m = drones == d
+        try:
+            own[int(d)] = (fit_to_priors(c2w_sfm[m], prior_c2w[m]), m)
+        except DegenerateAlignment:
+            continue
+    if len(own) < 2:
+        return together, True
+    rmse_all = together.agreement(c2w_sfm, prior_c2w)["position_rmse_m"]
+    rmse_own = float(
+        np.median(
+            [f.agreement(c2w_sfm[m], prior_c2w[m])["position_rmse_m"] for f, m in own.values()]
+        )
+    )
+    if rmse_all <= max(SHARED_FACTOR * rmse_own, SHARED_MIN_M):
+        return together, True
+    scale = float(np.median([f.sim.scale for f, _ in own.values()]))
+    ups = np.array([f.sim.rotation.T @ np.array([0.0, 0.0, 1.0]) for f, _ in own.values()])
+    up = ups.mean(0) / max(float(np.linalg.norm(ups.mean(0))), 1e-12)
+    used = np.zeros(len(drones), bool)
+    for f, m in own.values():
+        used[np.flatnonzero(m)[f.used]] = True
+    return PriorFit(Similarity(_turn_onto_z(up), np.zeros(3), scale), used, "scale+gravity"), False
+
+
+def _turn_onto_z(up: np.ndarray) -> np.ndarray:
+    """The smallest rotation [3, 3] taking the unit vector ``up`` onto +z."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(up, z)
+    s, c = float(np.linalg.norm(axis)), float(np.dot(up, z))
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = axis / s
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * kx + (1 - c) * kx @ kx

@@ -155,6 +155,11 @@ def format_report(report: dict[str, Any]) -> str:
     pri = report.get("priors")
     if pri and "error" in pri:
         lines.append(f"  priors: {pri['error']}")
+    elif pri and "position_median_m" not in pri:  # a swarm whose drones' frames differ
+        lines.append(
+            f"  priors: metres and z up from {pri['used']} frames ({pri['method']}: the drones' "
+            f"telemetry has no common frame), {pri['scale_m_per_unit']:.4g} m per SfM unit"
+        )
     elif pri:
         lines.append(
             f"  priors: metres and z up from {pri['used']} frames ({pri['method']}), "

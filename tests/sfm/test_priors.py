@@ -94,3 +94,42 @@ def test_read_priors_needs_both_arrays_and_a_valid_row():
     ds.extra["prior_c2w"][2, 0, 3] = np.nan
     c2w, valid = read_priors(ds)
     assert valid.tolist() == [True, False, False] and c2w.shape == (3, 4, 4)
+
+
+def test_a_swarm_with_one_telemetry_frame_is_fitted_as_one():
+    from dronecap.sfm.priors import fit_swarm_to_priors
+
+    t = np.linspace(0, 1, 20)
+    world = np.concatenate(
+        [flight(np.stack([3 * t, np.sin(3 * t), 0.2 * t], 1)), flight(np.stack([3 + t, t, t], 1))]
+    )
+    drones = np.repeat([0, 1], 20)
+    to_sfm = Similarity(rot("x", 70) @ rot("z", 20), np.array([1.0, -2.0, 0.5]), 0.5)
+    fit, shared = fit_swarm_to_priors(to_sfm.apply_poses(world), world, drones)
+    assert shared and fit.sim.scale == pytest.approx(2.0, rel=1e-6)
+    assert np.allclose(fit.sim.apply_poses(to_sfm.apply_poses(world)), world, atol=1e-6)
+
+
+def test_a_swarm_whose_drones_have_their_own_origins_keeps_scale_and_gravity():
+    from dronecap.sfm.priors import fit_swarm_to_priors
+
+    t = np.linspace(0, 1, 20)
+    world = np.concatenate(
+        [flight(np.stack([3 * t, np.sin(3 * t), 0.2 * t], 1)), flight(np.stack([3 + t, t, t], 1))]
+    )
+    drones = np.repeat([0, 1], 20)
+    # drone 1's onboard state: its own take-off point and heading (yaw 40 deg, shifted)
+    own = Similarity(rot("z", 40), np.array([-3.0, 1.0, 0.0]), 1.0)
+    priors = world.copy()
+    priors[20:] = own.apply_poses(world[20:])
+    to_sfm = Similarity(rot("x", 70) @ rot("z", 20), np.array([1.0, -2.0, 0.5]), 0.5)
+    sfm = to_sfm.apply_poses(world)
+    fit, shared = fit_swarm_to_priors(sfm, priors, drones)
+    assert not shared and fit.method == "scale+gravity"
+    assert fit.sim.scale == pytest.approx(2.0, rel=1e-6)
+    metric = fit.sim.apply_poses(sfm)
+    # metres: every distance as in the world; gravity: heights differ as in the world
+    d_world = np.linalg.norm(world[0, :3, 3] - world[-1, :3, 3])
+    assert np.linalg.norm(metric[0, :3, 3] - metric[-1, :3, 3]) == pytest.approx(d_world)
+    dz = metric[:, 2, 3] - metric[0, 2, 3]
+    assert np.allclose(dz, world[:, 2, 3] - world[0, 2, 3], atol=1e-6)
