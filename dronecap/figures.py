@@ -55,6 +55,10 @@ def sfm(stage_dir: Path) -> str:
         text += f", ATE {gt['ate_percent']:.2f}% of extent"
     if "rot_median_deg" in gt:
         text += f", rotation {gt['rot_median_deg']:.2f}° median"
+    drones = rep.get("drones") or []
+    if drones:  # a swarm: how many drones are in the one model
+        linked = sum(bool(d.get("linked")) for d in drones)
+        text += f", {linked}/{len(drones)} drones in one model"
     return text
 
 

@@ -50,11 +50,14 @@ def test_two_drones_are_posed_in_one_model_with_their_own_cameras(swarm_run: Pat
     assert acc["ate_percent"] < 1.0 and set(acc["per_group"]) == {"0", "1"}
 
 
-def test_the_printed_report_names_every_drone(swarm_run: Path, capsys) -> None:
+def test_the_reports_name_every_drone(swarm_run: Path) -> None:
     from dronecap.sfm.report import format_report
 
     text = format_report(json.loads((swarm_run / "sfm" / "report.json").read_text()))
     assert "drones: 2" in text and "drone_0:" in text and "drone_1:" in text
+    from dronecap import figures  # the pipeline report's key figure of the sfm stage
+
+    assert "2/2 drones in one model" in figures.sfm(swarm_run)
 
 
 def test_a_single_flight_ground_truth_is_refused_for_a_swarm(swarm_run: Path, capsys) -> None:
