@@ -166,13 +166,19 @@ def _keypoints(rows: np.ndarray) -> Any:
 
 
 def match(
-    database: Path, work: Path, opts: SfmOptions, n_frames: int, swarm: bool = False
+    database: Path,
+    work: Path,
+    opts: SfmOptions,
+    n_frames: int,
+    swarm: bool = False,
+    own_pairs: bool = True,
 ) -> dict[str, Any]:
     """Match and geometrically verify image pairs; returns what was done (for the report).
 
     ``swarm`` (several drones' flights): after the flights' own pairs, every frame is also
     matched with the ``opts.cross_num_images`` most alike frames of the other drones' flights
     (:mod:`dronecap.sfm.retrieval`): the pairs that link one drone's flight to another's.
+    ``own_pairs`` False: the flights' own pairs are matched already (:mod:`ray_front`).
     """
     import pycolmap
 
@@ -184,7 +190,9 @@ def match(
     verify.ransac.max_error = opts.max_epipolar_error
     verify.max_H_inlier_ratio = opts.max_h_inlier_ratio
     common = {"matching_options": matching, "verification_options": verify}
-    if kind == "exhaustive":
+    if not own_pairs:
+        info["matcher"] = "per flight (Ray tasks)"
+    elif kind == "exhaustive":
         pycolmap.match_exhaustive(database, **common, device=pycolmap.Device.cpu)
     else:
         pairing = pycolmap.SequentialPairingOptions()
@@ -205,7 +213,7 @@ def match(
         pycolmap.match_sequential(
             database, **common, pairing_options=pairing, device=pycolmap.Device.cpu
         )
-    if swarm and kind != "exhaustive":  # exhaustive matching has every pair already
+    if swarm and (kind != "exhaustive" or not own_pairs):  # exhaustive has every pair
         t = time.perf_counter()
         pair_file = work / "cross_flight_pairs.txt"
         n_pairs = write_cross_flight_pairs(database, pair_file, opts.cross_num_images, opts.seed)

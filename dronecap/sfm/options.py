@@ -44,6 +44,9 @@ class SfmOptions:
     loop_num_images: int = 15  # frames retrieved per query
     visual_words: int = 512  # size of the flight's own visual vocabulary (upper bound)
     cross_num_images: int = 5  # a swarm: frames of other drones' flights matched per frame
+    # a swarm: each flight's features and own pairs as a Ray task ("local", or a cluster
+    # address); "" runs them here (sfm/ray_front.py)
+    ray: str = ""
     max_epipolar_error: float = 4.0  # RANSAC threshold of two-view verification, pixels
     max_h_inlier_ratio: float = 0.8  # pairs whose homography explains more are called planar
     # --- mapping ---

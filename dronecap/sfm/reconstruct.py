@@ -75,10 +75,19 @@ def colmap_job(
         emit(("phase", name, registered))
         return time.perf_counter()
 
-    t = phase("extract")
-    out["keypoints"], out["first_octave"] = extract_finer_when_sparse(
-        db, images, names, opts, cameras
-    )
+    n_drones = len(cameras)
+    on_ray = bool(opts.ray) and n_drones > 1
+    t = phase("extract" + (" + own pairs on Ray" if on_ray else ""))
+    if on_ray:
+        from dronecap.sfm.ray_front import front_end_on_ray
+
+        out["keypoints"], out["first_octave"], out["flight_matching"] = front_end_on_ray(
+            db, images, names, opts, cameras
+        )
+    else:
+        out["keypoints"], out["first_octave"] = extract_finer_when_sparse(
+            db, images, names, opts, cameras
+        )
     times["extract"] = time.perf_counter() - t
     usable = [n for n in names if out["keypoints"].get(n, 0) >= MIN_KEYPOINTS]
     if len(usable) < 2:
@@ -86,8 +95,7 @@ def colmap_job(
         return out
 
     t = phase("match")
-    n_drones = len(cameras)
-    out["match"] = match(db, root, opts, len(names), swarm=n_drones > 1)
+    out["match"] = match(db, root, opts, len(names), swarm=n_drones > 1, own_pairs=not on_ray)
     times["match"] = time.perf_counter() - t
     if out["match"]["verified_pairs"] == 0:
         out["stopped"] = "no pair of frames could be matched with a consistent geometry"

@@ -89,3 +89,28 @@ def test_two_unrelated_flights_are_reported_apart(tmp_path: Path) -> None:
     assert (tmp_path / "sfm" / "work" / other["own_model"]["model"]).is_dir()
     posed = open_dataset(tmp_path / "posed.h5")
     assert set(posed.drones().tolist()) == {list(records).index(linked[0])}
+
+
+@pytest.mark.slow
+def test_the_front_end_on_a_local_ray_cluster_gives_the_same_model(swarm_run: Path) -> None:
+    """`sfm --ray local`: each drone's features and own pairs as a Ray task (two workers, one
+    per flight), the databases merged centrally; the model agrees with the local run's."""
+    from dronecap.sfm.align import pose_accuracy
+
+    out = swarm_run / "ray"
+    argv = ["sfm", "--workdir", str(swarm_run), "--ray", "local", "--sfm-dir", str(out)]
+    assert main([*argv, "-o", str(out / "posed.h5"), "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["matching"]["matcher"] == "per flight (Ray tasks)"
+    assert report["matching"]["cross_flight_pairs"] > 0
+    local, ray = open_dataset(swarm_run / "posed.h5"), open_dataset(out / "posed.h5")
+
+    def keys(ds):
+        return list(zip(ds.drones().tolist(), ds.source_index.tolist(), strict=True))
+
+    both = sorted(set(keys(local)) & set(keys(ray)))
+    assert len(both) >= 0.95 * len(keys(local))
+    a = np.stack([local.poses[keys(local).index(k)] for k in both])
+    b = np.stack([ray.poses[keys(ray).index(k)] for k in both])
+    agree = pose_accuracy(b, a)
+    assert agree.ate_percent < 0.5 and agree.rot_median_deg < 0.5
