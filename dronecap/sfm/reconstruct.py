@@ -25,14 +25,13 @@ import numpy as np
 from dronecap.sfm.bend import rotation_disagreement
 from dronecap.sfm.camera_plan import CameraPlan
 from dronecap.sfm.colmap_steps import (
-    FALLBACK_MIN_ANGLE,
     MIN_KEYPOINTS,
     extract_finer_when_sparse,
     incremental_map,
-    initial_pairs,
     match,
 )
 from dronecap.sfm.flights import flight_of, image_names
+from dronecap.sfm.initial_pair import FALLBACK_MIN_ANGLE, initial_pairs
 from dronecap.sfm.isolate import run_isolated
 from dronecap.sfm.links import separate_unlinked
 from dronecap.sfm.options import SfmOptions

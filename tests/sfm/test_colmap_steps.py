@@ -39,7 +39,7 @@ def test_non_positive_threshold_is_rejected(field):
 
 
 def _ranked(measured, **opts):
-    from dronecap.sfm.colmap_steps import PairCandidate, rank_initial_pairs
+    from dronecap.sfm.initial_pair import PairCandidate, rank_initial_pairs
 
     ranked = rank_initial_pairs([PairCandidate(*m) for m in measured], SfmOptions(**opts))
     return [(c.a, c.b) for c in ranked]
@@ -92,7 +92,8 @@ def test_initial_pair_on_real_frames_has_angle_and_stays_local(lego_dir, tmp_pat
     import pycolmap
 
     from dronecap.sfm.blender_flight import blender_flight
-    from dronecap.sfm.colmap_steps import extract, initial_pairs
+    from dronecap.sfm.colmap_steps import extract
+    from dronecap.sfm.initial_pair import initial_pairs
 
     ds, _ = blender_flight(lego_dir, count=12)
     (tmp_path / "images").mkdir()
@@ -101,9 +102,8 @@ def test_initial_pair_on_real_frames_has_angle_and_stays_local(lego_dir, tmp_pat
         cv2.imwrite(str(tmp_path / "images" / n), im[..., 0])
     opts = SfmOptions(num_threads=1, init_max_gap=6, init_min_tri_angle=4.0)
     k = ds.intrinsics
-    extract(
-        tmp_path / "db.db", tmp_path / "images", names, opts, ("PINHOLE", [k.fx, k.fy, k.cx, k.cy])
-    )
+    camera = ("PINHOLE", [k.fx, k.fy, k.cx, k.cy])
+    extract(tmp_path / "db.db", tmp_path / "images", names, opts, [camera])
     pycolmap.match_exhaustive(tmp_path / "db.db", device=pycolmap.Device.cpu)
     pairs, info = initial_pairs(tmp_path / "db.db", opts)
     assert pairs and info["measured"] > 0
@@ -147,7 +147,7 @@ def test_sparse_frames_are_extracted_one_octave_finer(tmp_path, textured):
     names = _frames(tmp_path, textured)
     opts = SfmOptions(num_threads=1)
     keypoints, octave = extract_finer_when_sparse(
-        tmp_path / "db.db", tmp_path / "images", names, opts, None
+        tmp_path / "db.db", tmp_path / "images", names, opts, [None]
     )
     median = sorted(keypoints.values())[1]
     assert octave == (-1 if textured else -2)
@@ -158,6 +158,6 @@ def test_sparse_frames_are_extracted_one_octave_finer(tmp_path, textured):
     if not textured:  # 0 turns the second extraction off
         never = SfmOptions(num_threads=1, finer_below=0)
         _, octave = extract_finer_when_sparse(
-            tmp_path / "db0.db", tmp_path / "images", names, never, None
+            tmp_path / "db0.db", tmp_path / "images", names, never, [None]
         )
         assert octave == -1
