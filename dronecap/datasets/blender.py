@@ -78,8 +78,6 @@ def import_blender(
     Raises:
         InputError: missing/invalid JSON or images, unknown colour, bad resolution.
     """
-    from dronecap.progress import progress_bar
-
     scene_dir = Path(scene_dir)
     if color not in ("rgb", "gray"):
         raise InputError(f"unknown colour {color!r}: use 'rgb' or 'gray'")
@@ -90,31 +88,12 @@ def import_blender(
             "not a folder (expected a Blender scene with transforms_*.json)", scene_dir
         )
     frames, angle_x, hashes = _read_transforms(scene_dir)
-
-    images, alpha, files = [], [], []
-    src_size = None
-    for _, _, fr in progress_bar(frames, desc="import-blender", unit="img", disable=not progress):
-        path = _image_path(scene_dir, fr)
-        rgba = _read_rgba(path)
-        if src_size is None:
-            src_size = rgba.shape[:2]
-        elif rgba.shape[:2] != src_size:
-            raise InputError(
-                f"image is {rgba.shape[1]}x{rgba.shape[0]}, others are {src_size[1]}x{src_size[0]}",
-                path,
-            )
-        rgb, a = _resize(rgba, resolution)
-        images.append(_to_color(rgb, color))
-        alpha.append(a)
-        files.append(path)
-
-    im = np.stack(images)
+    im, al, files, src_size = _read_images(scene_dir, frames, resolution, color, progress)
     h, w = im.shape[1:3]
     f = w / (2 * np.tan(angle_x / 2))
     intr = Intrinsics(fx=f, fy=f, cx=w / 2, cy=h / 2, width=w, height=h)
     poses = opengl_to_opencv(np.array([fr["transform_matrix"] for _, _, fr in frames], float))
     split = np.array([SPLITS[s] for s, _, _ in frames], np.int8)
-    al = np.stack(alpha)
     train = split == SPLITS["train"]
     aabb = carve_aabb(al[train], poses[train], intr)
     bounds_from = "alpha carving"
@@ -149,6 +128,37 @@ def import_blender(
         },
     )
     return write_dataset(out_path, ds)
+
+
+def _read_images(
+    scene_dir: Path,
+    frames: list[tuple[str, int, dict]],
+    resolution: int,
+    color: str,
+    progress: bool,
+) -> tuple[np.ndarray, np.ndarray, list[Path], tuple[int, int]]:
+    """Every frame's PNG, resized: images uint8 [N, H, W, C], alpha uint8 [N, H, W], the files
+    read and the source (height, width), the same for all (InputError when not)."""
+    from dronecap.progress import progress_bar
+
+    images, alpha, files = [], [], []
+    src_size = None
+    for _, _, fr in progress_bar(frames, desc="import-blender", unit="img", disable=not progress):
+        path = _image_path(scene_dir, fr)
+        rgba = _read_rgba(path)
+        if src_size is None:
+            src_size = rgba.shape[:2]
+        elif rgba.shape[:2] != src_size:
+            raise InputError(
+                f"image is {rgba.shape[1]}x{rgba.shape[0]}, others are {src_size[1]}x{src_size[0]}",
+                path,
+            )
+        rgb, a = _resize(rgba, resolution)
+        images.append(_to_color(rgb, color))
+        alpha.append(a)
+        files.append(path)
+    assert src_size is not None  # _read_transforms refuses a scene without frames
+    return np.stack(images), np.stack(alpha), files, src_size
 
 
 def _read_transforms(scene_dir: Path) -> tuple[list[tuple[str, int, dict]], float, dict[str, str]]:
