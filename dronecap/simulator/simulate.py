@@ -106,9 +106,9 @@ class SimulatedFlight:
         if scene_name not in SCENES:
             raise InputError(f"unknown scene {scene_name!r}, expected one of {sorted(SCENES)}")
         if frames < 2:
-            raise InputError(f"--frames must be at least 2, got {frames}")
+            raise InputError(f"frames must be at least 2, got {frames}")
         if seed < 0:
-            raise InputError(f"--seed must be >= 0, got {seed}")
+            raise InputError(f"seed must be >= 0, got {seed}")
         if problems := capture.problems():
             raise InputError("; ".join(problems))
         self.scene_name, self.frames, self.seed, self.capture = scene_name, frames, seed, capture
