@@ -41,7 +41,7 @@ from dronecap.capture.selection import (
     select_frames,
 )
 from dronecap.capture.telemetry import Telemetry, find_capture, layout_for, match, parse_columns
-from dronecap.capture.tracks import PAIR_NAMES, WINDOW, FeatureTracker
+from dronecap.capture.tracks import WINDOW, FeatureTracker
 from dronecap.errors import InputError
 
 MIN_KEPT = 2  # fewer kept frames leave nothing to reconstruct
@@ -383,54 +383,6 @@ def _nothing_to_reconstruct(n: int, sel: Selection) -> str:
     return f"nothing to reconstruct: {why} (need at least {MIN_KEPT} usable frames)"
 
 
-# Per-decoded-frame tables as stored under /extra in frames.h5 (table name -> extra name).
-EXTRA_NAMES = {name: name for name in (*SCORE_NAMES, *PAIR_NAMES)} | {
-    "source_index": "decoded_source_index",
-    "timestamp": "decoded_timestamp",
-    "readable": "readable",
-    "defect": "defect",
-}
-# Telemetry tables (present when the capture had telemetry), stored per decoded frame.
-TELEMETRY_NAMES = {
-    "prior_c2w": "decoded_prior_c2w",
-    "prior_valid": "decoded_prior_valid",
-    "frame_id": "decoded_frame_id",
-    "camera_frame": "camera_frame",
-    "dropped_before": "dropped_before",
-}
-
-
-def tables_to_extra(tables: dict[str, np.ndarray], sel: Selection) -> dict[str, np.ndarray]:
-    """The arrays stored under ``/extra``: every table [N], ``keep`` uint8 [N], ``reason``
-    int8 [N] and ``reason_legend`` str [len(REASONS)] (code -> name); with telemetry also the
-    contract's per-KEPT-frame ``prior_c2w`` [M, 4, 4], ``prior_valid`` bool [M] and
-    ``frame_id`` int64 [M]."""
-    names = EXTRA_NAMES | TELEMETRY_NAMES
-    extra = {names[k]: np.asarray(v) for k, v in tables.items() if k in names}
-    extra["readable"] = extra["readable"].astype(np.uint8)
-    extra["keep"] = sel.keep.astype(np.uint8)
-    extra["reason"] = sel.reason.astype(np.int8)
-    extra["reason_legend"] = np.array(REASONS)
-    if "prior_c2w" in tables:
-        kept = sel.keep
-        extra["prior_c2w"] = np.asarray(tables["prior_c2w"], np.float64)[kept]
-        extra["prior_valid"] = np.asarray(tables["prior_valid"], bool)[kept]
-        extra["frame_id"] = np.asarray(tables["frame_id"], np.int64)[kept]
-    return extra
-
-
-def extra_to_tables(extra: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Inverse of :func:`tables_to_extra` for the tables (what select_frames reads)."""
-    missing = [v for v in EXTRA_NAMES.values() if v not in extra]
-    if missing:
-        raise InputError(
-            f"has no ingest tables to replay (missing {', '.join(missing)}; "
-            "files from before the feature-track selection need a new `dronecap ingest`)"
-        )
-    names = EXTRA_NAMES | {k: v for k, v in TELEMETRY_NAMES.items() if v in extra}
-    return {k: np.asarray(extra[v]) for k, v in names.items()}
-
-
 def params_record(params: IngestParams) -> dict[str, object]:
     """JSON-able parameters for provenance."""
     d = asdict(params)
@@ -442,8 +394,6 @@ __all__ = [
     "REASONS",
     "IngestParams",
     "IngestResult",
-    "extra_to_tables",
     "ingest",
     "params_record",
-    "tables_to_extra",
 ]
