@@ -32,7 +32,7 @@ import numpy as np
 
 from dronecap.datasets.bounds import lookat_point
 from dronecap.datasets.format import SPLITS, Dataset, open_dataset, provenance, write_dataset
-from dronecap.errors import InputError
+from dronecap.errors import InputError, check_option
 from dronecap.files import atomic_output, sha256_file
 
 SCHEMES = ("iid", "sector", "drone")
@@ -213,8 +213,7 @@ def _check_arguments(out_dir: Path, clients: int, scheme: str, seed: int) -> Non
         raise InputError(f"unknown shard scheme {scheme!r}: use one of {', '.join(SCHEMES)}")
     if clients < 1:
         raise InputError(f"clients must be at least 1, got {clients}")
-    if seed < 0:
-        raise InputError(f"seed must be >= 0, got {seed}")
+    check_option("seed", seed, minimum=0)
     existing = sorted(p.name for p in out_dir.iterdir()) if out_dir.is_dir() else []
     if other := [name for name in existing if not SHARD_FILE.fullmatch(name)]:
         raise InputError(
