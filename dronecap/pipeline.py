@@ -29,7 +29,7 @@ from typing import Any
 
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, output_lock, sha256_file
-from dronecap.pipeline_spec import Pipeline, Stage, substitute
+from dronecap.pipeline_spec import Pipeline, PipelineStage, substitute
 from dronecap.stages import STAGES
 
 STAMP = ".dronecap-stage.json"
@@ -110,7 +110,7 @@ class Runner:
             if d.is_symlink() or not d.resolve().is_relative_to(inside):
                 raise InputError(f"is a link or leaves the runs folder {root}: not using it", d)
 
-    def _plan(self, stage: Stage) -> tuple[dict[str, Any], dict[str, str], str]:
+    def _plan(self, stage: PipelineStage) -> tuple[dict[str, Any], dict[str, str], str]:
         params = {
             k: substitute(v, self.pipeline.vars, self.stage_dirs) for k, v in stage.params.items()
         }
@@ -121,7 +121,12 @@ class Runner:
         return params, hashes, cache_key(stage.command, params, hashes)
 
     def _why(
-        self, stage: Stage, stamp: dict[str, Any] | None, params: dict, hashes: dict, key: str
+        self,
+        stage: PipelineStage,
+        stamp: dict[str, Any] | None,
+        params: dict,
+        hashes: dict,
+        key: str,
     ) -> str:
         if stage.id in self.force:
             return "forced"
@@ -139,7 +144,9 @@ class Runner:
         changed = [p for p, h in hashes.items() if stamp.get("inputs", {}).get(p) != h]
         return f"input changed: {', '.join(changed)}" if changed else "up to date"
 
-    def _keeps_folder(self, stage: Stage, stamp: dict[str, Any] | None, params: dict, key: str):
+    def _keeps_folder(
+        self, stage: PipelineStage, stamp: dict[str, Any] | None, params: dict, key: str
+    ):
         """True when the stage's folder is resumed, not cleared: an interrupted run with the same
         key, or a finished one whose only change extends it (more steps) with the same inputs."""
         if stamp is None or stage.id in self.force:

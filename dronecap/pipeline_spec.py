@@ -75,8 +75,9 @@ _LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _con
 
 
 @dataclass
-class Stage:
-    """One stage of a pipeline after validation."""
+class PipelineStage:
+    """One use of a stage in a pipeline, after validation: its id, the command (a
+    :data:`dronecap.stages.STAGES` entry, :class:`dronecap.stages.Stage`) and its parameters."""
 
     id: str
     command: str
@@ -91,11 +92,11 @@ class Pipeline:
     """A named, validated pipeline: stages in execution order and its variables."""
 
     name: str
-    stages: list[Stage]
+    stages: list[PipelineStage]
     vars: dict[str, Any]
     description: str = ""
 
-    def stage(self, stage_id: str) -> Stage:
+    def stage(self, stage_id: str) -> PipelineStage:
         """The stage with this id (SpecError listing the ids when unknown)."""
         for s in self.stages:
             if s.id == stage_id:
@@ -184,7 +185,7 @@ def build_pipeline(
         if stage_id not in stages_spec:
             raise SpecError(f"{at}: override names unknown stage {stage_id!r}")
 
-    stages: list[Stage] = []
+    stages: list[PipelineStage] = []
     for stage_id, body in stages_spec.items():
         line = stages_spec.key_lines[stage_id]
         body = body if body is not None else LineDict()
@@ -205,14 +206,14 @@ def build_pipeline(
         for k, v in param_overrides.get(stage_id, {}).items():
             params[k] = v
             param_lines.setdefault(k, line)
-        stage = Stage(stage_id, command, params, line, param_lines)
+        stage = PipelineStage(stage_id, command, params, line, param_lines)
         _check_params(stage, STAGES[command].load()[0], path)
         _check_refs(stage, vars_, [s.id for s in stages], list(stages_spec), path)
         stages.append(stage)
     return Pipeline(name, stages, vars_, str(spec.get("description", "")))
 
 
-def _check_params(stage: Stage, settings_cls: type, path: str | Path) -> None:
+def _check_params(stage: PipelineStage, settings_cls: type, path: str | Path) -> None:
     table = params_table(settings_cls)
     for key, value in stage.params.items():
         line = stage.param_lines.get(key, stage.line)
@@ -239,7 +240,11 @@ def _check_params(stage: Stage, settings_cls: type, path: str | Path) -> None:
 
 
 def _check_refs(
-    stage: Stage, vars_: dict[str, Any], earlier: list[str], all_ids: list[str], path: str | Path
+    stage: PipelineStage,
+    vars_: dict[str, Any],
+    earlier: list[str],
+    all_ids: list[str],
+    path: str | Path,
 ) -> None:
     for key, value in stage.params.items():
         for v in value if isinstance(value, list) else [value]:

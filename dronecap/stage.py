@@ -47,6 +47,7 @@ class Meta:
     repeat: bool = False
     group: str | None = None
     flat: Flat | None = None
+    late: bool = False
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,7 @@ def setting(
     parse: Callable[[str], Any] | None = None,
     repeat: bool = False,
     group: str | None = None,
+    late: bool = False,
 ) -> Any:
     """A settings field: its default (none: required), help and how it is given.
 
@@ -91,9 +93,12 @@ def setting(
         repeat: a list option given once per value (``--set a=1 --set b=2``); otherwise a
             list option takes several values after one flag.
         group: the ``--help`` section.
+        late: ``parse`` runs when the settings are built, so a value it refuses is a one-line
+            error naming the option (exit code 1, like a value out of bounds), not argparse's;
+            ``const`` is then text that ``parse`` converts too.
     """
     meta = Meta(help, flag, short, positional, choices, minimum, maximum, metavar, const, parse,
-                repeat, group)  # fmt: skip
+                repeat, group, late=late)  # fmt: skip
     if factory is not None:
         return field(default_factory=factory, metadata={KEY: meta})
     return field(default=default, metadata={KEY: meta})
@@ -117,6 +122,42 @@ def flatten(
     """
     flat = Flat(cls, help, parse, only, dict(flags or {}))
     return field(default_factory=dict, metadata={KEY: Meta("", group=group, flat=flat)})
+
+
+class Numbers(tuple):
+    """Numbers given as one comma-separated value (``--noise 3,0.3``) and shown the same way,
+    so :func:`command_line` gives back what was typed."""
+
+    separator = ","
+
+    def __str__(self) -> str:
+        return self.separator.join(str(x) for x in self)
+
+
+class Size(Numbers):
+    """An image size in pixels, (width, height), given and shown as ``WxH``."""
+
+    separator = "x"
+
+
+def numbers(*counts: int) -> Callable[[str], Numbers]:
+    """A ``parse=`` for ``counts`` (one of them) comma-separated finite numbers, as floats."""
+    import math
+
+    want = (
+        "a number" if counts == (1,) else " or ".join(map(str, counts)) + " comma-separated numbers"
+    )
+
+    def parse(text: str) -> Numbers:
+        try:
+            values = tuple(float(x) for x in text.split(","))
+        except ValueError:
+            values = ()
+        if len(values) not in counts or not all(math.isfinite(v) for v in values):
+            raise ValueError(f"takes {want}, got {text!r}")
+        return Numbers(values)
+
+    return parse
 
 
 @dataclass(kw_only=True)
@@ -154,8 +195,8 @@ class Option:
     @property
     def late(self) -> bool:
         """Parsed when the settings are built (its parse errors are one-line InputErrors), not
-        by argparse: a flattened field with its own parser."""
-        return self.meta.flat is not None and self.meta.flat.parse is not None
+        by argparse: a flattened field with its own parser, or a ``late`` setting."""
+        return self.meta.late or (self.meta.flat is not None and self.meta.flat.parse is not None)
 
     def label(self) -> str:
         """How messages name it: the flag, or the argument's name."""
@@ -253,7 +294,7 @@ def _argparse_keywords(o: Option) -> dict[str, Any]:
         return kw
     if o.required:
         kw["required"] = True
-    metavar = m.metavar or ("V" if o.late else o.name.upper() if m.flat else None)
+    metavar = m.metavar or (("V" if o.late else o.name.upper()) if m.flat else None)
     if metavar:
         kw["metavar"] = metavar
     return kw
@@ -267,11 +308,11 @@ def from_namespace(cls: type, ns: argparse.Namespace) -> Any:
     values: dict[str, Any] = {}
     for o in options(cls):
         value = getattr(ns, o.dest)
-        if o.late and value is not None:
+        if o.late and isinstance(value, str):  # given as text (a default is typed)
             try:
                 value = o.convert(value)
             except ValueError as err:
-                raise InputError(str(err)) from None
+                raise InputError(str(err) if o.meta.flat else f"{o.label()}: {err}") from None
         if "." in o.dest:
             top, sub = o.dest.split(".", 1)
             if value is not None:
@@ -294,7 +335,9 @@ def param_value(opt: Option, value: Any) -> Any:
     for v in items:
         try:
             c = opt.convert(str(v))
-        except (TypeError, ValueError, argparse.ArgumentTypeError):
+        except (TypeError, ValueError, argparse.ArgumentTypeError) as err:
+            if opt.meta.late and not opt.meta.flat:
+                raise ValueError(f"{err}") from None  # the parser says what it must be
             name = getattr(opt.meta.parse or opt.kind, "__name__", "a valid value")
             raise ValueError(f"must be {name}, got {v!r}") from None
         if opt.meta.choices is not None and c not in opt.meta.choices:

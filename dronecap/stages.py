@@ -27,7 +27,8 @@ Picture = Callable[[Path, dict[str, Any], Path], "Path | None"]  # (stage dir, p
 
 @dataclass(frozen=True)
 class Stage:
-    """One command: what it is, what it reads and writes, how a summary shows it."""
+    """One command: what it is, what it reads and writes, how a summary shows it (a pipeline
+    uses it as :class:`dronecap.pipeline_spec.PipelineStage`s)."""
 
     name: str
     module: str  # dronecap.commands.<module>

@@ -9,14 +9,9 @@
 Heavy libraries (OpenCV, open3d) are imported inside the functions that use them.
 """
 
-from dronecap.capture.ingest import (
-    IngestParams,
-    IngestResult,
-    extra_to_tables,
-    ingest,
-    tables_to_extra,
-)
+from dronecap.capture.ingest import IngestParams, IngestResult, ingest
 from dronecap.capture.selection import REASONS, Selection, SelectionParams, select_frames
+from dronecap.capture.tables import extra_to_tables, tables_to_extra
 
 __all__ = [
     "REASONS",

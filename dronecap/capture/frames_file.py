@@ -23,15 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from dronecap.capture.decode import IMAGE_SUFFIXES
-from dronecap.capture.ingest import (
-    TELEMETRY_NAMES,
-    IngestParams,
-    IngestResult,
-    extra_to_tables,
-    params_record,
-    tables_to_extra,
-)
+from dronecap.capture.ingest import IngestParams, IngestResult, params_record
 from dronecap.capture.selection import SelectionParams, select_frames
+from dronecap.capture.tables import TELEMETRY_NAMES, extra_to_tables, tables_to_extra
 from dronecap.datasets.format import Dataset, open_dataset, provenance
 from dronecap.errors import InputError
 from dronecap.files import sha256_file

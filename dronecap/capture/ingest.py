@@ -12,7 +12,7 @@ frame is decoded.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -20,7 +20,15 @@ import numpy as np
 
 from dronecap.camera import Camera
 from dronecap.camera.files import load_camera
-from dronecap.capture.decode import DecodedFrame, SourceInfo, open_source, prefetch, progress_stream
+from dronecap.capture.decode import (
+    DecodedFrame,
+    ImageFolderSource,
+    SourceInfo,
+    VideoSource,
+    open_source,
+    prefetch,
+    progress_stream,
+)
 from dronecap.capture.defects import UpsideDownCheck, demosaic, detect_bayer, torn_row
 from dronecap.capture.framing import LUMA_WEIGHTS, Framing, make_framing
 from dronecap.capture.quality import SCORE_NAMES, frame_diff, frame_scores
@@ -33,7 +41,7 @@ from dronecap.capture.selection import (
     select_frames,
 )
 from dronecap.capture.telemetry import Telemetry, find_capture, layout_for, match, parse_columns
-from dronecap.capture.tracks import PAIR_NAMES, WINDOW, FeatureTracker
+from dronecap.capture.tracks import WINDOW, FeatureTracker
 from dronecap.errors import InputError
 
 MIN_KEPT = 2  # fewer kept frames leave nothing to reconstruct
@@ -136,28 +144,8 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
             reconstruct: black, blank or frozen footage).
     """
     t0 = time.perf_counter()
-    path, csv_path, layout = Path(source), None, None
-    if path.is_dir():
-        path, csv_path, layout = find_capture(path)
-    if params.telemetry is not None:
-        csv_path, layout = Path(params.telemetry), None
-        if not csv_path.is_file():
-            raise InputError("telemetry file not found", csv_path)
-    src = open_source(path, params.fps, params.skip_unreadable)
+    src, telemetry = _open(Path(source), params)
     info = src.info
-    telemetry = None
-    if csv_path is not None:
-        if info.kind != "images":
-            raise InputError(
-                "telemetry is matched to the frames of an image folder, not a video", csv_path
-            )
-        try:
-            columns = parse_columns(params.columns)
-        except ValueError as err:
-            raise InputError(str(err)) from None
-        names = [f.name for f in src.files]  # type: ignore[union-attr]
-        offset = None if params.camera_offset is None else np.asarray(params.camera_offset, float)
-        telemetry = match(csv_path, layout_for(csv_path, columns, layout), names, offset)
     try:
         framing = make_framing((info.width, info.height), params.size, params.crop)
     except ValueError as err:
@@ -177,35 +165,91 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
     small, tables, bayer = _decode_and_score(
         src.frames(), framing, info, params.bayer, window, progress
     )
-    n = len(small)
-    if n == 0:
-        raise InputError("no decodable frames (empty or damaged video stream)", info.path)
-    expected = info.expected_frames
-    if info.kind == "video" and expected is not None and n < expected - 1:
-        msg = f"truncated: decoded {n} of {expected} frames ({100 * n / expected:.0f}%)"
-        if not params.allow_truncated:
-            raise InputError(f"{msg}; pass --allow-truncated to ingest those {n}", info.path)
-        warnings.append(msg)
-
-    if n == 1:
-        raise InputError(
-            "only one decodable frame: a single view has nothing to reconstruct", info.path
-        )
+    warnings += _check_count(len(small), info, params.allow_truncated)
     if telemetry is not None:
         tables.update(_telemetry_tables(telemetry, tables["readable"]))
     selection = select_frames(tables, params.selection)
     kept = np.flatnonzero(selection.keep)
     if len(kept) < MIN_KEPT:
-        raise InputError(_nothing_to_reconstruct(n, selection), info.path)
+        raise InputError(_nothing_to_reconstruct(len(small), selection), info.path)
+    warnings += _selection_warnings(selection, tables["name"], telemetry)
+    return IngestResult(
+        info=info,
+        framing=framing,
+        camera=camera,
+        camera_source=camera_source,
+        images=np.stack([small[i] for i in kept])[..., None],
+        names=[tables["name"][i] for i in kept],
+        tables={k: v for k, v in tables.items() if k != "name"},
+        selection=selection,
+        telemetry=telemetry,
+        bayer=bayer,
+        warnings=warnings,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def _open(
+    path: Path, params: IngestParams
+) -> tuple[VideoSource | ImageFolderSource, Telemetry | None]:
+    """The frame source of ``path`` and its matched telemetry (a capture folder's own CSV, or
+    ``params.telemetry``), checked before any frame is decoded."""
+    csv_path, layout = None, None
+    if path.is_dir():
+        path, csv_path, layout = find_capture(path)
+    if params.telemetry is not None:
+        csv_path, layout = Path(params.telemetry), None
+        if not csv_path.is_file():
+            raise InputError("telemetry file not found", csv_path)
+    src = open_source(path, params.fps, params.skip_unreadable)
+    if csv_path is None:
+        return src, None
+    if src.info.kind != "images":
+        raise InputError(
+            "telemetry is matched to the frames of an image folder, not a video", csv_path
+        )
+    try:
+        columns = parse_columns(params.columns)
+    except ValueError as err:
+        raise InputError(str(err)) from None
+    names = [f.name for f in src.files]  # type: ignore[union-attr]
+    offset = None if params.camera_offset is None else np.asarray(params.camera_offset, float)
+    return src, match(csv_path, layout_for(csv_path, columns, layout), names, offset)
+
+
+def _check_count(n: int, info: SourceInfo, allow_truncated: bool) -> list[str]:
+    """Refuse fewer than two decoded frames, or a truncated video unless ``allow_truncated``
+    (then the warning about it)."""
+    if n == 0:
+        raise InputError("no decodable frames (empty or damaged video stream)", info.path)
+    warnings = []
+    expected = info.expected_frames
+    if info.kind == "video" and expected is not None and n < expected - 1:
+        msg = f"truncated: decoded {n} of {expected} frames ({100 * n / expected:.0f}%)"
+        if not allow_truncated:
+            raise InputError(f"{msg}; pass --allow-truncated to ingest those {n}", info.path)
+        warnings.append(msg)
+    if n == 1:
+        raise InputError(
+            "only one decodable frame: a single view has nothing to reconstruct", info.path
+        )
+    return warnings
+
+
+def _selection_warnings(
+    selection: Selection, names: np.ndarray, telemetry: Telemetry | None
+) -> list[str]:
+    """What the selection and the telemetry found: coverage gaps, frames dropped for stream
+    defects, frames without a telemetry pose, frames lost in transmission."""
+    warnings = []
+    n = len(selection.keep)
     if selection.gaps:
         warnings.append(
             "coverage gaps with no usable frame: "
             + ", ".join(f"frames {a}-{b}" for a, b in selection.gaps)
         )
     for name, at in _defects(selection).items():
-        listed = ", ".join(str(tables["name"][i]) for i in at[:DEFECTS_LISTED])
-        more = f" and {len(at) - DEFECTS_LISTED} more" if len(at) > DEFECTS_LISTED else ""
-        warnings.append(f"{len(at)} {name.replace('_', '-')} frames dropped: {listed}{more}")
+        warnings.append(f"{len(at)} {name.replace('_', '-')} frames dropped: " + _listed(names[at]))
     if telemetry is not None and not telemetry.prior_valid.all():
         missing = int((~telemetry.prior_valid).sum())
         warnings.append(
@@ -214,25 +258,15 @@ def ingest(source: str | Path, params: IngestParams, progress: bool = True) -> I
         )
     if telemetry is not None and telemetry.dropped:
         lost = telemetry.dropped
-        listed = ", ".join(str(f) for f in lost[:DEFECTS_LISTED])
-        more = f" and {len(lost) - DEFECTS_LISTED} more" if len(lost) > DEFECTS_LISTED else ""
-        warnings.append(f"{len(lost)} camera frames lost in transmission: {listed}{more}")
-    images = np.stack([small[i] for i in kept])[..., None]
-    names = [tables["name"][i] for i in kept]
-    return IngestResult(
-        info=info,
-        framing=framing,
-        camera=camera,
-        camera_source=camera_source,
-        images=images,
-        names=names,
-        tables={k: v for k, v in tables.items() if k != "name"},
-        selection=selection,
-        telemetry=telemetry,
-        bayer=bayer,
-        warnings=warnings,
-        seconds=time.perf_counter() - t0,
-    )
+        warnings.append(f"{len(lost)} camera frames lost in transmission: {_listed(lost)}")
+    return warnings
+
+
+def _listed(items: Sequence[object]) -> str:
+    """The first :data:`DEFECTS_LISTED` items, comma-separated, and how many more there are."""
+    listed = ", ".join(str(x) for x in items[:DEFECTS_LISTED])
+    more = f" and {len(items) - DEFECTS_LISTED} more" if len(items) > DEFECTS_LISTED else ""
+    return listed + more
 
 
 def _decode_and_score(
@@ -349,54 +383,6 @@ def _nothing_to_reconstruct(n: int, sel: Selection) -> str:
     return f"nothing to reconstruct: {why} (need at least {MIN_KEPT} usable frames)"
 
 
-# Per-decoded-frame tables as stored under /extra in frames.h5 (table name -> extra name).
-EXTRA_NAMES = {name: name for name in (*SCORE_NAMES, *PAIR_NAMES)} | {
-    "source_index": "decoded_source_index",
-    "timestamp": "decoded_timestamp",
-    "readable": "readable",
-    "defect": "defect",
-}
-# Telemetry tables (present when the capture had telemetry), stored per decoded frame.
-TELEMETRY_NAMES = {
-    "prior_c2w": "decoded_prior_c2w",
-    "prior_valid": "decoded_prior_valid",
-    "frame_id": "decoded_frame_id",
-    "camera_frame": "camera_frame",
-    "dropped_before": "dropped_before",
-}
-
-
-def tables_to_extra(tables: dict[str, np.ndarray], sel: Selection) -> dict[str, np.ndarray]:
-    """The arrays stored under ``/extra``: every table [N], ``keep`` uint8 [N], ``reason``
-    int8 [N] and ``reason_legend`` str [len(REASONS)] (code -> name); with telemetry also the
-    contract's per-KEPT-frame ``prior_c2w`` [M, 4, 4], ``prior_valid`` bool [M] and
-    ``frame_id`` int64 [M]."""
-    names = EXTRA_NAMES | TELEMETRY_NAMES
-    extra = {names[k]: np.asarray(v) for k, v in tables.items() if k in names}
-    extra["readable"] = extra["readable"].astype(np.uint8)
-    extra["keep"] = sel.keep.astype(np.uint8)
-    extra["reason"] = sel.reason.astype(np.int8)
-    extra["reason_legend"] = np.array(REASONS)
-    if "prior_c2w" in tables:
-        kept = sel.keep
-        extra["prior_c2w"] = np.asarray(tables["prior_c2w"], np.float64)[kept]
-        extra["prior_valid"] = np.asarray(tables["prior_valid"], bool)[kept]
-        extra["frame_id"] = np.asarray(tables["frame_id"], np.int64)[kept]
-    return extra
-
-
-def extra_to_tables(extra: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Inverse of :func:`tables_to_extra` for the tables (what select_frames reads)."""
-    missing = [v for v in EXTRA_NAMES.values() if v not in extra]
-    if missing:
-        raise InputError(
-            f"has no ingest tables to replay (missing {', '.join(missing)}; "
-            "files from before the feature-track selection need a new `dronecap ingest`)"
-        )
-    names = EXTRA_NAMES | {k: v for k, v in TELEMETRY_NAMES.items() if v in extra}
-    return {k: np.asarray(extra[v]) for k, v in names.items()}
-
-
 def params_record(params: IngestParams) -> dict[str, object]:
     """JSON-able parameters for provenance."""
     d = asdict(params)
@@ -408,8 +394,6 @@ __all__ = [
     "REASONS",
     "IngestParams",
     "IngestResult",
-    "extra_to_tables",
     "ingest",
     "params_record",
-    "tables_to_extra",
 ]

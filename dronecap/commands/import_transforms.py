@@ -15,7 +15,7 @@ class ImportOptions(Base):
     output: str | None = setting(
         None, short="-o", help="dataset to write (default: WORKDIR/dataset.h5)"
     )
-    size: int = setting(160, help="stored image width in pixels")
+    size: int = setting(160, minimum=8, help="stored image width in pixels, >= 8")
     color: str = setting(
         "auto",
         choices=("auto", "rgb", "gray"),

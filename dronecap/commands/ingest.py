@@ -21,9 +21,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dronecap.capture.framing import parse_size
 from dronecap.capture.selection import SelectionParams
+from dronecap.stage import Numbers, Size, flatten, numbers, setting
 from dronecap.stage import Settings as Base
-from dronecap.stage import flatten, setting
+
+
+def _size(text: str) -> Size:
+    """``"160"`` or ``"WxH"`` -> the output size (ValueError when it is not one)."""
+    return Size(parse_size(text))
 
 
 @dataclass(kw_only=True)
@@ -39,7 +45,9 @@ class Settings(Base):
     output: str | None = setting(
         None, short="-o", help="output frames file (default: WORKDIR/frames.h5)"
     )
-    size: str = setting("160", help="output size, '160' or 'WxH' (default: 160)")
+    size: Size = setting(
+        Size((160, 160)), parse=_size, late=True, help="output size, '160' or 'WxH' (default: 160)"
+    )
     crop: str = setting(
         "center",
         help="'center' (crop to the output aspect, default), 'stretch', or 'X,Y,W,H' in source px",
@@ -70,8 +78,10 @@ class Settings(Base):
         help="map telemetry columns: 'file=COL,frame_id=COL,time=COL,x=COL,...,qw=COL' plus "
         "'unit=mm|m,time_unit=us|ms|s'",
     )
-    camera_offset: str | None = setting(
+    camera_offset: Numbers | None = setting(
         None,
+        parse=numbers(3),
+        late=True,
         metavar="X,Y,Z",
         help="camera position in the drone's body axes, metres (default: at the body origin)",
     )
@@ -113,37 +123,27 @@ def run(args: Settings) -> int:
 def _ingest(args: Settings, selection: object) -> int:
     from dronecap import workspace
     from dronecap.capture.frames_file import drone_sources, frames_dataset
-    from dronecap.capture.framing import parse_numbers, parse_size
     from dronecap.capture.ingest import IngestParams, ingest
     from dronecap.capture.telemetry import parse_columns
     from dronecap.datasets import write_dataset
     from dronecap.errors import InputError
 
     sources = drone_sources(args.source)
-    try:
-        size = parse_size(args.size)
-    except ValueError as err:
-        raise InputError(f"--size: {err}") from None
     calibrations = _calibrations(args.intrinsics, sources)
     try:
         parse_columns(args.columns)
     except ValueError as err:
         raise InputError(str(err)) from None
-    offset = None
-    if args.camera_offset is not None:
-        try:
-            offset = parse_numbers(args.camera_offset, 3, float, "--camera-offset: give X,Y,Z")
-        except ValueError as err:
-            raise InputError(str(err)) from None
-        if not all(math.isfinite(v) and abs(v) < 10 for v in offset):
-            raise InputError(f"--camera-offset: metres within 10 m, got {args.camera_offset}")
+    offset = args.camera_offset
+    if offset is not None and not all(abs(v) < 10 for v in offset):
+        raise InputError(f"--camera-offset: metres within 10 m, got {offset}")
     if args.telemetry is not None and len(sources) > 1:
         raise InputError(
             "--telemetry names one CSV: with several drones each capture folder's own is used"
         )
     params = [
         IngestParams(
-            size=size,
+            size=tuple(args.size),
             crop=args.crop,
             fps=args.fps,
             intrinsics=calibration,
@@ -151,7 +151,7 @@ def _ingest(args: Settings, selection: object) -> int:
             skip_unreadable=args.skip_unreadable,
             telemetry=args.telemetry,
             columns=args.columns,
-            camera_offset=offset,
+            camera_offset=None if offset is None else tuple(offset),
             bayer=args.bayer.lower() if args.bayer in ("AUTO", "NONE") else args.bayer,
             selection=selection,  # type: ignore[arg-type]
         )

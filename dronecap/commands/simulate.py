@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from dronecap.simulator.sensor import DEFECT_DEFAULTS
+from dronecap.stage import Numbers, Size, numbers, setting
 from dronecap.stage import Settings as Base
-from dronecap.stage import setting
 
 SCENES = ("corridor", "orbit")
 CODECS = ("ffv1", "mjpg", "mp4v")
@@ -23,11 +24,40 @@ FORMATS = ("mp4", "nanocockpit", "pulp-dronet")
 SENSORS = ("clean", "aideck", "aideck-162")
 
 
-def _defect(name: str, metavar: str, text: str) -> Any:
+def _pixel_size(text: str) -> Size:
+    """``"WxH"`` -> (width, height) in pixels (ValueError when it is not one)."""
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"must be WxH, got {text!r}") from None
+    return Size((w, h))
+
+
+def _number(text: str) -> float:
+    """One finite number (ValueError when it is not one)."""
+    return numbers(1)(text)[0]
+
+
+def _whole(text: str) -> int:
+    """A whole number, also written as a float (``60.0``); ValueError when it is not one."""
+    value = _number(text)
+    if value != int(value):
+        raise ValueError(f"must be an integer, got {text!r}")
+    return int(value)
+
+
+def _defect(name: str, metavar: str, text: str, parse: Callable[[str], Any] = _number) -> Any:
     """A defect option: given alone, it takes its realistic level from DEFECT_DEFAULTS."""
     level = DEFECT_DEFAULTS[name]
     shown = ",".join(str(x) for x in level) if isinstance(level, tuple) else str(level)
-    return setting(None, const=shown, metavar=metavar, help=f"{text}; given alone: {shown}")
+    return setting(
+        None,
+        const=shown,
+        parse=parse,
+        late=True,
+        metavar=metavar,
+        help=f"{text}; given alone: {shown}",
+    )
 
 
 @dataclass(kw_only=True)
@@ -68,34 +98,40 @@ class Settings(Base):
         help="clean: 160x160 pinhole, mild noise; aideck: HM01B0 at 324x244 (f 184 px) with "
         "every defect at its default level; aideck-162: the same binned to 162x162",
     )
-    size: str | None = setting(None, metavar="WxH", help="image size (default: the sensor's)")
+    size: Size | None = setting(
+        None, parse=_pixel_size, late=True, metavar="WxH", help="image size (default: the sensor's)"
+    )
     focal: float | None = setting(None, help="focal length in pixels (default: the sensor's)")
-    distortion: str | None = _defect(
-        "distortion", "K1,K2", "OpenCV radial lens distortion (also K1,K2,K3)"
+    distortion: Numbers | None = _defect(
+        "distortion", "K1,K2", "OpenCV radial lens distortion (also K1,K2,K3)", numbers(2, 3)
     )
-    principal_offset: str | None = _defect(
-        "principal_offset", "DX,DY", "principal point off centre by DX*width, DY*height"
+    principal_offset: Numbers | None = _defect(
+        "principal_offset", "DX,DY", "principal point off centre by DX*width, DY*height", numbers(2)
     )
-    vignetting: str | None = _defect("vignetting", "V", "light lost at the farthest corner (0-1)")
-    noise: str | None = _defect("noise", "READ,SHOT", "read noise DN and shot noise DN^2 per DN")
-    blur: str | None = _defect(
+    vignetting: float | None = _defect("vignetting", "V", "light lost at the farthest corner (0-1)")
+    noise: Numbers | None = _defect(
+        "noise", "READ,SHOT", "read noise DN and shot noise DN^2 per DN", numbers(2)
+    )
+    blur: float | None = _defect(
         "blur", "MS", "exposure time in ms (motion blur from the flight's own motion)"
     )
-    exposure_drift: str | None = _defect(
+    exposure_drift: float | None = _defect(
         "exposure_drift", "A", "relative amplitude of the auto-exposure gain drift (0-1)"
     )
-    jpeg: str | None = _defect("jpeg", "Q", "JPEG quality of the streamed frames (1-100)")
-    drop: str | None = _defect(
+    jpeg: int | None = _defect("jpeg", "Q", "JPEG quality of the streamed frames (1-100)", _whole)
+    drop: float | None = _defect(
         "drop", "RATE", "fraction of frames lost by the link, in bursts (0-0.5)"
     )
-    duplicate: str | None = _defect(
+    duplicate: float | None = _defect(
         "duplicate", "RATE", "fraction of frames delivered as the previous buffer (0-0.5)"
     )
-    torn: str | None = _defect(
+    torn: float | None = _defect(
         "torn", "RATE", "fraction of frames whose bottom part is black/gray/shifted (0-0.5)"
     )
-    state_noise: str | None = setting(
+    state_noise: Numbers | None = setting(
         None,
+        parse=numbers(4),
+        late=True,
         metavar="POS_MM,ANGLE_DEG,SCALE,YAW_DRIFT",
         help="folder formats: onboard estimate errors: white position noise (mm), attitude "
         "noise (deg), odometry scale error (fraction), heading drift (deg/min) "
@@ -104,20 +140,6 @@ class Settings(Base):
 
 
 DEFECTS = tuple(DEFECT_DEFAULTS)  # the defect options, by field name
-
-
-def _numbers(flag: str, text: str, count: tuple[int, ...]) -> tuple[float, ...]:
-    """Comma-separated finite numbers, ``count`` of them, or one InputError line."""
-    from dronecap.errors import InputError
-
-    try:
-        vals = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        vals = ()
-    if len(vals) not in count or not all(math.isfinite(v) for v in vals):
-        want = " or ".join(str(c) for c in count)
-        raise InputError(f"--{flag} takes {want} comma-separated numbers, got {text!r}")
-    return vals
 
 
 def capture_from_settings(args: Settings):  # noqa: ANN201 - a simulate.Capture
@@ -134,10 +156,7 @@ def capture_from_settings(args: Settings):  # noqa: ANN201 - a simulate.Capture
     if args.size is not None or args.focal is not None:
         w, h = lens.width, lens.height
         if args.size is not None:
-            try:
-                w, h = (int(x) for x in args.size.lower().split("x"))
-            except ValueError:
-                raise InputError(f"--size must be WxH, got {args.size!r}") from None
+            w, h = args.size
             if not (16 <= w <= 2048 and 16 <= h <= 2048):
                 raise InputError(f"--size must be 16-2048 pixels a side, got {args.size}")
         if args.focal is not None and not (math.isfinite(args.focal) and args.focal > 0):
@@ -152,39 +171,38 @@ def capture_from_settings(args: Settings):  # noqa: ANN201 - a simulate.Capture
         lens = dataclasses.replace(lens, model=sensor.lens.model, distortion=sensor.lens.distortion)
     v = {k: getattr(args, k) for k in DEFECTS}
     if v["principal_offset"] is not None:
-        dx, dy = _numbers("principal-offset", v["principal_offset"], (2,))
+        dx, dy = v["principal_offset"]
         if not (abs(dx) < 0.4 and abs(dy) < 0.4):
             raise InputError("--principal-offset must be within +-0.4 of the size")
         lens = dataclasses.replace(lens, cx=lens.width * (0.5 + dx), cy=lens.height * (0.5 + dy))
     if v["distortion"] is not None:
-        k = _numbers("distortion", v["distortion"], (2, 3))
+        k = tuple(v["distortion"])
         if not all(abs(x) <= 1.0 for x in k):
             raise InputError("--distortion coefficients must be within +-1")
         lens = with_lens_defects(lens.pinhole(), k)
     changes: dict[str, object] = {"lens": lens}
     if v["vignetting"] is not None:
-        changes["vignetting"] = _numbers("vignetting", v["vignetting"], (1,))[0]
+        changes["vignetting"] = v["vignetting"]
     if v["noise"] is not None:
-        changes["read_noise"], changes["shot_noise"] = _numbers("noise", v["noise"], (2,))
+        changes["read_noise"], changes["shot_noise"] = v["noise"]
     if v["blur"] is not None:
-        ms = _numbers("blur", v["blur"], (1,))[0]
+        ms = v["blur"]
         if not 0 < ms <= 1000 / 30:
             raise InputError(f"--blur is an exposure time in ms within (0, 33.3], got {ms}")
         changes["exposure_s"] = ms / 1000
         changes["max_subframes"] = max(sensor.max_subframes, 16)
     if v["exposure_drift"] is not None:
-        changes["exposure_drift"] = _numbers("exposure-drift", v["exposure_drift"], (1,))[0]
+        changes["exposure_drift"] = v["exposure_drift"]
     if v["jpeg"] is not None:
-        q = _numbers("jpeg", v["jpeg"], (1,))[0]
-        if q != int(q) or not 1 <= q <= 100:
+        if not 1 <= v["jpeg"] <= 100:
             raise InputError(f"--jpeg quality must be an integer 1-100, got {v['jpeg']}")
-        changes["jpeg_quality"] = int(q)
+        changes["jpeg_quality"] = v["jpeg"]
     sensor = dataclasses.replace(sensor, **changes)  # type: ignore[arg-type]
     for name in ("drop", "duplicate", "torn"):
         if v[name] is not None:
-            link = dataclasses.replace(link, **{name: _numbers(name, v[name], (1,))[0]})
+            link = dataclasses.replace(link, **{name: v[name]})
     if args.state_noise is not None:
-        pos, ang, scale, yaw = _numbers("state-noise", args.state_noise, (4,))
+        pos, ang, scale, yaw = args.state_noise
         state = dataclasses.replace(
             state, position_mm=pos, angle_deg=ang, scale=scale, yaw_drift_deg_min=yaw
         )

@@ -1,27 +1,8 @@
-"""dronecap.datasets: the HDF5 dataset format, Synthetic 360° import, split, shards, export."""
+"""dronecap.datasets: the HDF5 dataset format, Synthetic 360° import, split, shards, export.
 
-from dronecap.datasets.format import (
-    FORMAT,
-    FORMAT_VERSION,
-    SPLITS,
-    Dataset,
-    DatasetError,
-    Intrinsics,
-    open_dataset,
-    provenance,
-    read_header,
-    write_dataset,
-)
+The package exports the format's surface (:mod:`dronecap.datasets.format`): ``Dataset``,
+``open_dataset``, ``write_dataset`` and the rest of its ``__all__``.
+"""
 
-__all__ = [
-    "FORMAT",
-    "FORMAT_VERSION",
-    "SPLITS",
-    "Dataset",
-    "DatasetError",
-    "Intrinsics",
-    "open_dataset",
-    "provenance",
-    "read_header",
-    "write_dataset",
-]
+from dronecap.datasets.format import *  # noqa: F403 - the format's surface, listed once there
+from dronecap.datasets.format import __all__ as __all__

@@ -29,6 +29,7 @@ import numpy as np
 
 from dronecap.datasets.bounds import carve_aabb, lookat_cube, near_far_from_aabb
 from dronecap.datasets.format import SPLITS, Dataset, Intrinsics, provenance, write_dataset
+from dronecap.datasets.import_scene import read_images
 from dronecap.datasets.safe_paths import inside_folder
 from dronecap.errors import InputError
 from dronecap.limits import read_image
@@ -78,8 +79,6 @@ def import_blender(
     Raises:
         InputError: missing/invalid JSON or images, unknown colour, bad resolution.
     """
-    from dronecap.progress import progress_bar
-
     scene_dir = Path(scene_dir)
     if color not in ("rgb", "gray"):
         raise InputError(f"unknown colour {color!r}: use 'rgb' or 'gray'")
@@ -90,31 +89,15 @@ def import_blender(
             "not a folder (expected a Blender scene with transforms_*.json)", scene_dir
         )
     frames, angle_x, hashes = _read_transforms(scene_dir)
-
-    images, alpha, files = [], [], []
-    src_size = None
-    for _, _, fr in progress_bar(frames, desc="import-blender", unit="img", disable=not progress):
-        path = _image_path(scene_dir, fr)
-        rgba = _read_rgba(path)
-        if src_size is None:
-            src_size = rgba.shape[:2]
-        elif rgba.shape[:2] != src_size:
-            raise InputError(
-                f"image is {rgba.shape[1]}x{rgba.shape[0]}, others are {src_size[1]}x{src_size[0]}",
-                path,
-            )
-        rgb, a = _resize(rgba, resolution)
-        images.append(_to_color(rgb, color))
-        alpha.append(a)
-        files.append(path)
-
-    im = np.stack(images)
+    files = [_image_path(scene_dir, fr) for _, _, fr in frames]
+    read = read_images(files, resolution, color, progress)
+    im = read.images
+    al = read.alpha if read.alpha is not None else np.full(im.shape[:3], 255, np.uint8)
     h, w = im.shape[1:3]
     f = w / (2 * np.tan(angle_x / 2))
     intr = Intrinsics(fx=f, fy=f, cx=w / 2, cy=h / 2, width=w, height=h)
     poses = opengl_to_opencv(np.array([fr["transform_matrix"] for _, _, fr in frames], float))
     split = np.array([SPLITS[s] for s, _, _ in frames], np.int8)
-    al = np.stack(alpha)
     train = split == SPLITS["train"]
     aabb = carve_aabb(al[train], poses[train], intr)
     bounds_from = "alpha carving"
@@ -143,7 +126,7 @@ def import_blender(
             "source": "blender",
             "scene": scene_dir.name,
             "camera_angle_x": angle_x,
-            "source_size": [int(src_size[1]), int(src_size[0])],
+            "source_size": list(read.source_size),
             "bounds_from": bounds_from,
             "luma_weights": list(LUMA_BT601) if color == "gray" else None,
         },

@@ -18,7 +18,7 @@ import numpy as np
 from dronecap.camera import Camera
 
 if TYPE_CHECKING:
-    from dronecap.datasets.format import Dataset
+    from dronecap.datasets.dataset import Dataset
 
 KINDS = ("frames", "posed", "dataset", "shard")
 SPLITS = {"train": 0, "val": 1, "test": 2}

@@ -42,9 +42,9 @@ class Images:
 
 
 def check_options(size: int, color: str) -> None:
-    """Range-check ``--size`` and ``--color`` before any work."""
+    """Range-check ``size`` and ``color`` before any work."""
     if size < 8:
-        raise InputError(f"--size must be at least 8 pixels, got {size}")
+        raise InputError(f"size must be at least 8 pixels, got {size}")
     if color not in COLORS:
         raise InputError(f"unknown colour {color!r}: use one of {', '.join(COLORS)}")
 
@@ -71,10 +71,11 @@ def read_images(paths: list[Path], width: int, color: str, progress: bool = True
             )
         gray &= bool((rgba[:, :, 0:2] == rgba[:, :, 1:3]).all())
         rgb, a = _resize(rgba, width)
-        rgbs.append(rgb)
+        rgbs.append(rgb if color == "auto" else _to_color(rgb, color))  # uint8 once known
         alphas.append(a)
-    mode = ("gray" if gray else "rgb") if color == "auto" else color
-    images = np.stack([_to_color(rgb, mode) for rgb in rgbs])
+    if color == "auto":
+        rgbs = [_to_color(rgb, "gray" if gray else "rgb") for rgb in rgbs]
+    images = np.stack(rgbs)
     alpha = np.stack(alphas)
     return Images(images, None if (alpha == 255).all() else alpha, (size[1], size[0]))
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from dronecap.datasets.bounds import lookat_point
 from dronecap.datasets.format import SPLITS, Dataset, open_dataset, provenance, write_dataset
-from dronecap.errors import InputError
+from dronecap.errors import InputError, check_option
 from dronecap.files import atomic_output, sha256_file
 
 SCHEMES = ("iid", "sector", "drone")
@@ -159,17 +159,7 @@ def shard_dataset(
             images, no poses or split, or cameras with no azimuth spread around the up axis.
     """
     in_path, out_dir = Path(in_path), Path(out_dir)
-    if scheme not in SCHEMES:
-        raise InputError(f"unknown shard scheme {scheme!r}: use one of {', '.join(SCHEMES)}")
-    if clients < 1:
-        raise InputError(f"--clients must be at least 1, got {clients}")
-    if seed < 0:
-        raise InputError(f"--seed must be >= 0, got {seed}")
-    existing = sorted(p.name for p in out_dir.iterdir()) if out_dir.is_dir() else []
-    if other := [name for name in existing if not SHARD_FILE.fullmatch(name)]:
-        raise InputError(
-            f"holds files that are not shards ({', '.join(other[:3])}): not replacing it", out_dir
-        )
+    _check_arguments(out_dir, clients, scheme, seed)
     ds = open_dataset(in_path, kinds=("dataset",))
     if ds.poses is None:
         raise InputError("has no camera poses to shard by", in_path)
@@ -186,25 +176,7 @@ def shard_dataset(
         )
     centre = ds.aabb.mean(0) if ds.aabb is not None else lookat_point(ds.poses)
     up = scene_up(ds.poses[train])
-    az = azimuths(ds.poses[train, :3, 3], centre, up)
-    if not (np.isfinite(az).all() and np.isfinite(centre).all()):
-        raise InputError("cameras give no finite azimuths around the scene centre", in_path)
-    ranges = None
-    if scheme == "iid":
-        owner = iid_assignment(len(train), clients, seed)
-    elif scheme == "drone":
-        owner = ds.drones()[train]
-    else:
-        flat = ds.poses[train, :3, 3] - centre
-        horizontal = np.linalg.norm(flat - np.outer(flat @ up, up), axis=1)
-        if horizontal.max() <= 1e-9 * max(1.0, np.abs(flat).max()):
-            raise InputError("cameras have no azimuth spread around the up axis", in_path)
-        if (distinct := len(np.unique(np.round(az, 6)))) < clients:  # e.g. all at one point
-            msg = f"cameras lie at {distinct} distinct azimuths: too few for {clients} sectors"
-            raise InputError(f"{msg} (each would be 0 degrees wide)", in_path)
-        owner, ranges = sector_assignment(az, clients)
-    assignment = np.full(ds.n, -1, np.int16)
-    assignment[train] = owner
+    owner, ranges = _assign(ds, train, centre, up, clients, scheme, seed, in_path)
     digest = sha256_file(in_path)
     summary: dict[str, Any] = {
         "dataset": str(in_path),
@@ -220,28 +192,82 @@ def shard_dataset(
     params = {"scheme": scheme, "clients": clients, "seed": seed}
     prov = provenance("shard", params, {in_path.name: digest})
     prov["parent"] = ds.provenance
+    assignment = np.full(ds.n, -1, np.int16)
+    assignment[train] = owner
     with atomic_output(out_dir, replaceable=SHARD_FILE.fullmatch) as tmp:
         tmp.mkdir()
         for k in range(clients):
             mine = train[owner == k]
-            entry = {
-                "client": k,
-                "file": f"client_{k}.h5",
-                "n_train": int(len(mine)),
-                "views": [ds.frame_name(i) for i in mine],
-                "parent_index": mine.tolist(),
-            }
-            if scheme == "drone":
-                entry["drone"] = ds.drone_name(k)
-            if ranges is not None:
-                first, last = np.degrees(ranges[k])
-                entry["azimuth_deg"] = [round(float(first), 3), round(float(last), 3)]
-                entry["span_deg"] = round(float((last - first) % 360), 3)
-            summary["shards"].append(entry)
+            summary["shards"].append(_summary_entry(ds, k, mine, scheme, ranges))
             idx = np.sort(np.concatenate([mine, test]))
-            write_dataset(tmp / entry["file"], _shard(ds, idx, assignment, k, prov, in_path))
+            shard = _shard(ds, idx, assignment, k, prov, in_path)
+            write_dataset(tmp / f"client_{k}.h5", shard)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=1))
     return out_dir
+
+
+def _check_arguments(out_dir: Path, clients: int, scheme: str, seed: int) -> None:
+    """InputError for an unknown scheme, clients < 1, a negative seed, or an existing
+    ``out_dir`` holding anything but shards."""
+    if scheme not in SCHEMES:
+        raise InputError(f"unknown shard scheme {scheme!r}: use one of {', '.join(SCHEMES)}")
+    if clients < 1:
+        raise InputError(f"clients must be at least 1, got {clients}")
+    check_option("seed", seed, minimum=0)
+    existing = sorted(p.name for p in out_dir.iterdir()) if out_dir.is_dir() else []
+    if other := [name for name in existing if not SHARD_FILE.fullmatch(name)]:
+        raise InputError(
+            f"holds files that are not shards ({', '.join(other[:3])}): not replacing it", out_dir
+        )
+
+
+def _assign(
+    ds: Dataset,
+    train: np.ndarray,
+    centre: np.ndarray,
+    up: np.ndarray,
+    clients: int,
+    scheme: str,
+    seed: int,
+    in_path: Path,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The client of every train frame, int64 [len(train)], and (scheme "sector") each
+    sector's azimuth range, float64 [clients, 2] radians (None for the other schemes)."""
+    az = azimuths(ds.poses[train, :3, 3], centre, up)
+    if not (np.isfinite(az).all() and np.isfinite(centre).all()):
+        raise InputError("cameras give no finite azimuths around the scene centre", in_path)
+    if scheme == "iid":
+        return iid_assignment(len(train), clients, seed), None
+    if scheme == "drone":
+        return ds.drones()[train], None
+    flat = ds.poses[train, :3, 3] - centre
+    horizontal = np.linalg.norm(flat - np.outer(flat @ up, up), axis=1)
+    if horizontal.max() <= 1e-9 * max(1.0, np.abs(flat).max()):
+        raise InputError("cameras have no azimuth spread around the up axis", in_path)
+    if (distinct := len(np.unique(np.round(az, 6)))) < clients:  # e.g. all at one point
+        msg = f"cameras lie at {distinct} distinct azimuths: too few for {clients} sectors"
+        raise InputError(f"{msg} (each would be 0 degrees wide)", in_path)
+    return sector_assignment(az, clients)
+
+
+def _summary_entry(
+    ds: Dataset, k: int, mine: np.ndarray, scheme: str, ranges: np.ndarray | None
+) -> dict[str, Any]:
+    """``summary.json``'s record of client ``k`` holding train frames ``mine``."""
+    entry: dict[str, Any] = {
+        "client": k,
+        "file": f"client_{k}.h5",
+        "n_train": int(len(mine)),
+        "views": [ds.frame_name(i) for i in mine],
+        "parent_index": mine.tolist(),
+    }
+    if scheme == "drone":
+        entry["drone"] = ds.drone_name(k)
+    if ranges is not None:
+        first, last = np.degrees(ranges[k])
+        entry["azimuth_deg"] = [round(float(first), 3), round(float(last), 3)]
+        entry["span_deg"] = round(float((last - first) % 360), 3)
+    return entry
 
 
 SHARD_FILE = re.compile(r"client_\d+\.h5|summary\.json")  # what a shard folder holds

@@ -63,7 +63,7 @@ def split_dataset(in_path: str | Path, out_path: str | Path, every: int = 8) -> 
     """
     in_path = Path(in_path)
     if every < 2:
-        raise InputError(f"--every must be at least 2 (one test frame in every k), got {every}")
+        raise InputError(f"every must be at least 2 (one test frame in every k), got {every}")
     ds = open_dataset(in_path, kinds=("posed", "dataset"))
     if ds.poses is None:
         raise InputError("has no camera poses (run `dronecap sfm` first)", in_path)

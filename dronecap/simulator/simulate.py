@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dronecap.errors import InputError
+from dronecap.errors import InputError, check_option
 from dronecap.simulator import formats, telemetry
 from dronecap.simulator.flights import Flight
 from dronecap.simulator.render import Renderer
@@ -105,10 +105,8 @@ class SimulatedFlight:
         (default ``seed``) the scene and its route, of which the drone flies ``part``."""
         if scene_name not in SCENES:
             raise InputError(f"unknown scene {scene_name!r}, expected one of {sorted(SCENES)}")
-        if frames < 2:
-            raise InputError(f"--frames must be at least 2, got {frames}")
-        if seed < 0:
-            raise InputError(f"--seed must be >= 0, got {seed}")
+        check_option("frames", frames, minimum=2)
+        check_option("seed", seed, minimum=0)
         if problems := capture.problems():
             raise InputError("; ".join(problems))
         self.scene_name, self.frames, self.seed, self.capture = scene_name, frames, seed, capture

@@ -105,7 +105,7 @@ def simulate_swarm(
             ``output`` that is not a folder.
     """
     if not 2 <= drones <= MAX_DRONES:
-        raise InputError(f"--drones must be 2-{MAX_DRONES}, got {drones}")
+        raise InputError(f"drones must be 2-{MAX_DRONES}, got {drones}")
     output = Path(output)
     if output.exists() and not output.is_dir():
         raise InputError("exists and is not a folder", output)

@@ -7,8 +7,8 @@ import json
 import cv2
 import numpy as np
 
-from dronecap.capture.ingest import extra_to_tables
 from dronecap.capture.selection import REASONS, SelectionParams, select_frames
+from dronecap.capture.tables import extra_to_tables
 from dronecap.cli import main
 from dronecap.datasets import open_dataset
 from tests.capture.conftest import pan, texture, white_orbit_frames, write_video

@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from dronecap.datasets import probe
-from dronecap.datasets.format import DatasetError, _read_dataset, open_dataset, write_dataset
+from dronecap.datasets.format import DatasetError, open_dataset, write_dataset
+from dronecap.datasets.read import _read_dataset
 from tests.reliability.conftest import as_version_1, run_cli, small_dataset
 
 # byte -> what it holds; HDF5 segfaults on the flipped file, or loops (> 40 s, never ended)

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dronecap.datasets import format as fmt
-from dronecap.datasets.format import open_dataset, write_dataset
+from dronecap.datasets import write
+from dronecap.datasets.format import Intrinsics, open_dataset, write_dataset
 from dronecap.errors import OutputError
 from tests.reliability.conftest import ring_poses, run_cli, small_dataset
 
@@ -35,7 +35,7 @@ def big_posed(tmp_path_factory: pytest.TempPathFactory) -> Path:
         ds,
         images=rng.integers(0, 256, (FRAMES, 160, 160, 3), dtype=np.uint8),
         poses=poses,
-        intrinsics=fmt.Intrinsics(150.0, 150.0, 80.0, 80.0, 160, 160),
+        intrinsics=Intrinsics(150.0, 150.0, 80.0, 80.0, 160, 160),
         names=None,
         source_index=None,
         timestamps=None,
@@ -105,7 +105,7 @@ def test_enospc_during_the_write_itself(
 ) -> None:
     """Past the free-space check (another writer filled the disk): the write's own ENOSPC is
     one OutputError, the temporary file is removed, the process lives."""
-    monkeypatch.setattr(fmt, "require_free_space", lambda path, nbytes: None)
+    monkeypatch.setattr(write, "require_free_space", lambda path, nbytes: None)
     with pytest.raises(OutputError, match="no space left on the device") as err:
         write_dataset(small_fs / "dataset.h5", open_dataset(big_posed))
     assert "\n" not in str(err.value)
