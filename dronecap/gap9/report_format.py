@@ -73,9 +73,8 @@ def format_report(report: dict) -> str:
     e = r["energy"]
     section("energy: SoC power x time + L3 bytes x J/B")
     rows.append(("step", f"{_j(e['step'])} (SoC {_j(e['soc_step'])} + L3 {_j(e['l3_step'])})"))
-    rows.append(
-        (f"run ({cfg['steps']} steps)", f"{_j(e['run'])} (L3 {e['l3_run'] / e['run']:.0%})")
-    )
+    l3_share = e["l3_run"] / e["run"] if e["run"] > 0 else 0.0  # a 0-step run spends nothing
+    rows.append((f"run ({cfg['steps']} steps)", f"{_j(e['run'])} (L3 {l3_share:.0%})"))
     rows.append(("render one frame", _j(e["frame"])))
     rows.extend(e["assumptions"].items())
     section(f"federated round ({r['link']['clients']} drones, up + down)")
