@@ -14,6 +14,12 @@ point (26.94 dB in 28 s) drawn for reference.
     .venv/bin/python benchmarks/time_to_quality.py run paper --preset tiny-dronerf
     .venv/bin/python benchmarks/time_to_quality.py run budget60 --time-budget 60
     .venv/bin/python benchmarks/time_to_quality.py report
+    .venv/bin/python benchmarks/time_to_quality.py compare --budget 10 --rounds 3
+
+`compare` trains the old default (``OLD_DEFAULT``: today's with the changes undone) and the new
+one on lego, the simulated corridor and the real Himax test_23 sequence (built as
+benchmarks/scene_sized.py builds them), taking turns in one process, and writes
+``benchmarks/results/time_to_quality_compare.md`` and ``.png``.
 
 Single thread (``--threads 1``) unless told; run under ``nice`` on the shared machine.
 """
@@ -174,6 +180,119 @@ def report(args: argparse.Namespace) -> None:
     fig.savefig(shared.RESULTS / "time_to_quality.png", dpi=110)
 
 
+# The default before this session's changes, as overrides of today's: what `compare` runs as
+# "old" beside the current default ("new") in the same process.
+OLD_DEFAULT = ("grid_carve=false",)
+COMPARE_SCENES = ("lego", "corridor", "himax-test_23")
+
+
+def _budget_run(ds, cfg, budget_s: float, views: np.ndarray) -> dict:
+    """Train ``cfg`` for ``budget_s`` process-CPU seconds of optimizer steps (the schedule
+    planned as ``--time-budget`` plans it) and score ``views`` at a quarter, half and all of
+    the budget. Returns {"setup_s": CPU s to build the trainer (grid carving included),
+    "steps", "curve": [(CPU s, PSNR dB)], "psnr": the last}."""
+    from dronecap.gap9.model import memory_bytes
+    from dronecap.nerf import budget
+    from dronecap.nerf.budget import BUDGET_LR_FINAL_RATIO, BudgetConfig
+    from dronecap.nerf.resolve import resolve
+    from dronecap.nerf.trainer import Trainer
+
+    c0 = time.process_time()
+    tr = Trainer(resolve(cfg.replace(lr_final_ratio=BUDGET_LR_FINAL_RATIO), ds, memory_bytes), ds)
+    setup = time.process_time() - c0
+    bcfg = BudgetConfig(time_budget_s=budget_s)
+    state = budget.start(bcfg, cfg.steps)
+    cpu, marks, curve = 0.0, [budget_s / 4, budget_s / 2], []
+    while not budget.finished(state, tr.step):
+        tr.plan(state.planned_steps)
+        c0 = time.process_time()
+        tr.train_step()
+        dt = time.process_time() - c0
+        cpu += dt
+        budget.after_step(bcfg, state, tr.step, cpu, dt)
+        if marks and cpu >= marks[0] and not budget.finished(state, tr.step):
+            marks.pop(0)
+            curve.append((cpu, tr.evaluate(ds, views)["psnr"]))
+            tr.field.train()
+    curve.append((cpu, tr.evaluate(ds, views)["psnr"]))
+    return {"setup_s": setup, "steps": tr.step, "curve": curve, "psnr": curve[-1][1]}
+
+
+def compare(args: argparse.Namespace) -> None:
+    """Old default against the new one on each scene, in the same process, taking turns for
+    ``--rounds`` rounds; table (medians over rounds) and plot."""
+    import torch
+    from scene_sized import build_scene
+
+    from dronecap.nerf.config import apply_sets, preset
+
+    torch.set_num_threads(args.threads)
+    variants = {"old": list(OLD_DEFAULT), "new": []}
+    rows: dict[tuple[str, str], list[dict]] = {}
+    for rnd in range(args.rounds):
+        for scene in args.scenes.split(","):
+            ds = shared.open_scene(str(build_scene(scene, Path(args.cache))), Path(args.cache))
+            test = np.flatnonzero(ds.split == 2)
+            views = test[:: max(1, test.size // 20)]  # at most ~20 views scored
+            for name, sets in variants.items():
+                cfg = apply_sets(preset("scene-sized").replace(seed=args.seed + rnd), sets)
+                out = _budget_run(ds, cfg, args.budget, views) | {"load": os.getloadavg()[0]}
+                rows.setdefault((scene, name), []).append(out)
+                done = f"{out['psnr']:.2f} dB, {out['steps']} steps, setup {out['setup_s']:.1f}"
+                print(
+                    f"round {rnd} {scene} {name}: {done} CPU s, load {out['load']:.1f}", flush=True
+                )
+    _compare_report(args, variants, rows)
+
+
+def _compare_report(args: argparse.Namespace, variants: dict, rows: dict) -> None:
+    """benchmarks/results/time_to_quality_compare.md and .png from ``compare``'s rows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = args.scenes.split(",")
+    lines = [
+        f"# Time to quality: old default against new, {args.budget:g} CPU s on 1 thread",
+        "",
+        f"`.venv/bin/python benchmarks/time_to_quality.py compare --budget {args.budget:g} "
+        f"--rounds {args.rounds} --scenes {args.scenes}`; old = new + "
+        f"`{' '.join(OLD_DEFAULT)}`. Training clock: process CPU time of the optimizer steps "
+        "(the time on an idle core; the machine is shared), the schedule planned as "
+        "`--time-budget` plans it. PSNR on up to 20 test views spread over the test split. "
+        "Medians over rounds (seed + round); `setup` is the CPU time to build the trainer "
+        "(grid carving included), outside the budget; `load`: 1-minute load average after "
+        "each run (median).",
+        "",
+        "| scene | variant | PSNR dB (median) | rounds | steps | setup CPU s | load |",
+        "|---|---|---:|---|---:|---:|---:|",
+    ]
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 3.8), squeeze=False)
+    for ax, scene in zip(axes[0], scenes, strict=True):
+        for name in variants:
+            runs = rows[(scene, name)]
+            med = lambda k, rs=runs: float(np.median([r[k] for r in rs]))  # noqa: E731
+            each = " / ".join(f"{r['psnr']:.2f}" for r in runs)
+            lines.append(f"| {scene} | {name} | {med('psnr'):.2f} | {each} | {med('steps'):.0f} | "
+                         f"{med('setup_s'):.1f} | {med('load'):.1f} |")  # fmt: skip
+            style = {"fmt": "o-", "color": "C1"} if name == "new" else {"fmt": "s--", "color": "C0"}
+            for i, r in enumerate(runs):
+                secs, psnrs = zip(*r["curve"], strict=True)
+                ax.plot(secs, psnrs, style["fmt"], ms=3, color=style["color"],
+                        label=name if i == 0 else None)  # fmt: skip
+        ax.set_title(scene)
+        ax.set_xlabel("training time [CPU s, 1 thread]")
+        ax.set_ylabel("test PSNR [dB]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    text = "\n".join(lines) + "\n"
+    print(text)
+    (shared.RESULTS / "time_to_quality_compare.md").write_text(text)
+    fig.tight_layout()
+    fig.savefig(shared.RESULTS / "time_to_quality_compare.png", dpi=110)
+
+
 def main() -> None:
     """Command line."""
     p, r = shared.command_line(__doc__)
@@ -185,8 +304,15 @@ def main() -> None:
     r.add_argument("--time-budget", type=float, help="CPU seconds of training (planned)")
     r.add_argument("--target-psnr", type=float, help="stop at this held-out PSNR")
     r.add_argument("--plateau-db", type=float, default=0.0, help="plateau stop (0: none)")
+    c = p._subparsers._group_actions[0].add_parser("compare", help="old default vs new")
+    c.add_argument("--scenes", default=",".join(COMPARE_SCENES))
+    c.add_argument("--budget", type=float, default=10.0, help="CPU seconds of training")
+    c.add_argument("--rounds", type=int, default=3)
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--threads", type=int, default=1)
+    c.add_argument("--cache", default="/tmp/dronecap-time-to-quality")
     args = p.parse_args()
-    run(args) if args.cmd == "run" else report(args)
+    {"run": run, "report": report, "compare": compare}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ dronecap cost [--preset NAME | RUN_DIR] [--platform gap9.yaml] [--set field=valu
               [--json out.json]
 dronecap cost --table2
 dronecap cost --search --budget-l3 32MB [--budget-l2 1.5MB] [--budget-l1 128kB]
-              [--runs runs/*/metrics.json] [--plot pareto.png]
+              [--runs runs/*/metrics.json] [--plot pareto.png] [--target-psnr 26.94]
 """
 
 from __future__ import annotations
@@ -65,6 +65,11 @@ class Settings(Base):
     runs: list[str] = setting(factory=list, help="metrics.json files of measured runs")
     plot: str | None = setting(None, help="Pareto PNG (default: WORKDIR/pareto.png)")
     top: int = setting(25, minimum=1, help="configurations listed by --search")
+    target_psnr: float | None = setting(
+        None,
+        minimum=0,
+        help="--search: rank the runs (or Table II rows) by modelled GAP9 energy to this PSNR",
+    )
     tolerance_db: float = setting(
         0.25,
         minimum=0,

@@ -14,16 +14,21 @@ def table2(args: Settings) -> int:
     from dronecap.gap9.paper import table2 as paper_table2
 
     rows = paper_table2(platform(args))
-    head = f"{'Mem paper':>9} {'model':>7} {'err':>7}"
-    print(f"{'row':<12} {head}   {head.replace('Mem', 'GOp')}")
+    head = f"{'Mem paper':>9} {'model':>7} {'err':>7} {'>round':>7}"
+    print(f"{'row':<12} {head}   {'GOp paper':>9} {'model':>7} {'err':>7}")
     for r in rows:
         print(
             f"{r['name']:<12} {r['mem_paper']:>9.0f} {r['mem_model']:>7.1f} {r['mem_err']:>+7.1%}"
+            f" {r['mem_err_rounding']:>+7.1%}"
             f"   {r['gop_paper']:>9.2f} {r['gop_model']:>7.3f} {r['gop_err']:>+7.1%}"
         )
     worst_m = max(abs(r["mem_err"]) for r in rows)
+    worst_r = max(abs(r["mem_err_rounding"]) for r in rows)
     worst_g = max(abs(r["gop_err"]) for r in rows)
-    print(f"worst |error|: memory {worst_m:.1%}, compute {worst_g:.1%} (MB = 1e6 B, GOp = 1e9 op)")
+    print(
+        f"worst |error|: memory {worst_m:.1%} ({worst_r:.1%} beyond the paper's whole-MB "
+        f"rounding), compute {worst_g:.1%} (MB = 1e6 B, GOp = 1e9 op)"
+    )
     return 0
 
 
@@ -76,4 +81,25 @@ def search(args: Settings) -> int:
         print(f"chosen: {chosen.label} ({chosen.mem_mb:.1f} MB, {chosen.psnr:.2f} dB; {title})")
     if drawn is not None:
         print(f"wrote {drawn}")
+    if args.target_psnr is not None:
+        _print_to_target(points, args.target_psnr, target, title)
     return 0
+
+
+def _print_to_target(points: list, target_db: float, target, title: str) -> None:
+    """The points ranked by modelled GAP9 energy to ``target_db`` (cheapest first)."""
+    from dronecap.gap9.energy import assumptions
+    from dronecap.gap9.search import to_target
+
+    print(f"to {target_db:g} dB on {target.name} ({title}), cheapest energy first:")
+    print(f"{'run':<20} {'steps':>6} {'GAP9 min':>9} {'energy J':>9} {'Mem MB':>7}")
+    for r in to_target(points, target_db, target):
+        if r["steps"] is None:
+            print(f"{r['label']:<20} {'never reached':>26} {r['mem_mb']:>7.1f}")
+        else:
+            print(
+                f"{r['label']:<20} {r['steps']:>6} {r['minutes']:>9.1f} {r['joules']:>9.1f} "
+                f"{r['mem_mb']:>7.1f}"
+            )
+    for name, text in assumptions(target).items():
+        print(f"  {name}: {text}")

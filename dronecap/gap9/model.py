@@ -23,6 +23,7 @@ import dataclasses
 import math
 
 from dronecap.gap9 import arch
+from dronecap.gap9.energy import energy_report
 from dronecap.gap9.link import federated_payload, link_report, link_time_s
 from dronecap.gap9.platform import Platform, load_platform
 from dronecap.gap9.report_format import format_report
@@ -173,7 +174,7 @@ def step_ops(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
         "forward": cfg.batch_samples * sum(per["forward"].values()),
         "backward": cfg.batch_samples * sum(per["backward"].values()),
         "loss": cfg.batch_samples / spp * arch.loss_ops_per_ray(cfg),
-        "optimizer": arch.optimizer_ops(c),
+        "optimizer": arch.optimizer_ops(c, p.calibration.optimizer_ops_per_value),
         "occupancy_amortised": occ_total / max(cfg.steps, 1),
     }
     out["total"] = sum(out.values())
@@ -207,7 +208,9 @@ def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
     (fp32 accumulation) in the backward, the same for the MLP weights, the occupancy flags the
     rays test (``march_steps`` per ray) and the target pixels. adam: read params, gradients,
     both moments; write params and moments; zero the gradients. occupancy update: the hash
-    params once per tile of queries, the grid's EMA read and written, its flags written.
+    params once per tile of queries, the grid's EMA read and written, its flags written;
+    ``occupancy_run`` every update of the run's schedule. render_frame: each forward tile of a
+    rendered frame reads every parameter (fp32) and its rays' occupancy flags.
     """
     n = p.numerics
     c = arch.counts(cfg, p.hash_rows)
@@ -223,14 +226,21 @@ def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
     adam = c.params * (
         n.param_bytes + 2 * n.grad_bytes + 2 * n.moment_bytes + n.param_bytes + 2 * n.moment_bytes
     )
-    occupancy = occupancy_dma_bytes(cfg, p, arch.grid_schedule(cfg).steady_queries)
+    sched = arch.grid_schedule(cfg)
+    occupancy = occupancy_dma_bytes(cfg, p, sched.steady_queries)
+    occupancy_run = sched.steady_updates * occupancy
+    occupancy_run += sched.warmup_updates * occupancy_dma_bytes(cfg, p, sched.warmup_queries)
     tiles = math.ceil(cfg.batch_samples / cfg.tile_samples)
+    render_tiles = math.ceil(frame_samples(cfg, spp) / cfg.tile_samples)
+    forward_tile = c.params * n.param_bytes + tile["occupancy_flags"]
     return {
         "tile": tile,
         "tiles_per_step": tiles,
         "adam_step": adam,
         "step": tiles * tile["total"] + adam,
         "occupancy_update": occupancy,
+        "occupancy_run": occupancy_run,
+        "render_frame": render_tiles * forward_tile,
     }
 
 
@@ -286,7 +296,8 @@ def latency(cfg: TrainConfig, p: Platform, spp: float) -> dict:
     dma_tile = traffic["tile"]["total"] / p.l3_l2_bytes_per_s
     tile_s = max(fwd + bwd, dma_tile)
     c = arch.counts(cfg, p.hash_rows)
-    adam_compute = arch.optimizer_ops(c) / p.calibration.elementwise_ops_per_cycle / p.clock_hz
+    adam_ops = arch.optimizer_ops(c, p.calibration.optimizer_ops_per_value)
+    adam_compute = adam_ops / p.calibration.elementwise_ops_per_cycle / p.clock_hz
     adam_dma = traffic["adam_step"] / p.l3_l2_bytes_per_s
     adam = max(adam_compute, adam_dma)
     sched = arch.grid_schedule(cfg)
@@ -414,12 +425,7 @@ def cost_report(
         },
         "latency": lat,
         "l3_traffic": traffic,
-        "energy": {
-            "power_w": p.power_w,
-            "step": lat["step"] * p.power_w,
-            "run": lat["train"] * p.power_w,
-            "frame": lat["render_frame"] * p.power_w,
-        },
+        "energy": energy_report(lat, traffic, cfg.steps, p),
         "link": link_report(cfg, p, clients),
         "verdicts": verdicts,
     }

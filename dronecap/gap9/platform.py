@@ -91,6 +91,7 @@ class Calibration:
     elementwise_ops_per_cycle: float = (
         4.0  # scalar FP ops (activations, SH, rendering, Adam): 1/FPU
     )
+    optimizer_ops_per_value: float = 45.0  # ops per trainable value per optimizer step (Table II)
 
 
 @dataclass
@@ -109,7 +110,12 @@ class Platform:
     l1_reserved_bytes: int = 18 * 2**10  # cluster stacks: 9 cores x 2 KiB, not available to kernels
     l3_l2_bytes_per_s: float = 370e6  # main DMA, L3 <-> L2
     l2_l1_bytes_per_s: float = 13.3e9  # cluster DMA, L2 <-> L1
-    power_w: float = 0.060  # average power at 370 MHz, 0.8 V
+    power_w: float = 0.060  # average SoC power at clock_hz (the paper: 370 MHz, 0.8 V -> 60 mW)
+    power_source: str = "Tiny-DroNeRF paper, Sec. III-B: 370 MHz, 0.8 V -> 60 mW average (SoC)"
+    l3_joules_per_byte: float = 90e-12  # L3 (off-chip PSRAM) access energy, read or write
+    l3_energy_source: str = (
+        "ASSUMPTION: 1.8 V x 20 mA active at 400 MB/s (no published figure found)"
+    )
     link_bits_per_s: float = 15e6  # NINA-W102 Wi-Fi, rated
     level_buffers: int = 2  # hash-level slices in L2 (double-buffered: DMA of the next overlaps)
     hash_rows: str = "paper"  # "paper": T rows per level; "stored": min(T, (res+1)^3) per level

@@ -13,6 +13,10 @@ def _s(t: float) -> str:
     return f"{t:.3g} s" if t >= 1 else f"{t * 1e3:.3g} ms"
 
 
+def _j(joules: float) -> str:
+    return f"{joules:.3g} J" if joules >= 1 else f"{joules * 1e3:.3g} mJ"
+
+
 def format_report(report: dict) -> str:
     """A readable multi-section table of a :func:`cost_report` dict."""
     r, cfg, mem, lat = report, report["config"], report["memory"], report["latency"]
@@ -66,9 +70,13 @@ def format_report(report: dict) -> str:
     section("L3 traffic")
     rows.append(("per tile", format_bytes(r["l3_traffic"]["tile"]["total"])))
     rows.append(("per step (incl. Adam)", format_bytes(r["l3_traffic"]["step"])))
-    section("energy at %.0f mW" % (r["energy"]["power_w"] * 1e3))
-    for k in ("step", "run", "frame"):
-        rows.append((k, f"{r['energy'][k]:.3g} J"))
+    e = r["energy"]
+    section("energy: SoC power x time + L3 bytes x J/B")
+    rows.append(("step", f"{_j(e['step'])} (SoC {_j(e['soc_step'])} + L3 {_j(e['l3_step'])})"))
+    l3_share = e["l3_run"] / e["run"] if e["run"] > 0 else 0.0  # a 0-step run spends nothing
+    rows.append((f"run ({cfg['steps']} steps)", f"{_j(e['run'])} (L3 {l3_share:.0%})"))
+    rows.append(("render one frame", _j(e["frame"])))
+    rows.extend(e["assumptions"].items())
     section(f"federated round ({r['link']['clients']} drones, up + down)")
     for g in ("no_grid", "grid"):
         rows.append((
@@ -79,5 +87,5 @@ def format_report(report: dict) -> str:
     for k, v in r["verdicts"].items():
         ok = "fits" if v["fits"] else "DOES NOT FIT"
         rows.append((k, f"{ok}: {format_bytes(v['need'])} of {format_bytes(v['have'])}"))
-    width = max(len(a) for a, _ in rows)
+    width = max(len(a) for a, _ in rows if not a.startswith("--"))
     return "\n".join(a if a.startswith("--") else f"  {a:<{width}}  {b}" for a, b in rows)

@@ -5,7 +5,8 @@ budgets (the untiled footprint against the L3 budget, as the paper sizes its con
 against 32 MB; the tiled L2 and L1 peaks against theirs). :func:`pareto_plot` draws memory
 against PSNR for measured runs (or, without runs, the paper's Table II PSNRs, labelled as such)
 and circles the chosen configuration: the smallest footprint within ``tolerance_db`` of the best
-PSNR that fits.
+PSNR that fits. :func:`to_target` ranks the points by the modelled GAP9 energy (and time) their
+runs spent to reach a target PSNR.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from dronecap.gap9.model import cost_report
+from dronecap.gap9.model import cost_report, deployed
 from dronecap.gap9.platform import Platform
 from dronecap.nerf.config import TrainConfig, config_from_dict, preset
 from dronecap.plots import pyplot, save_png
@@ -85,13 +86,25 @@ def search(
 
 @dataclass
 class Point:
-    """One measured (or published) configuration on the Pareto plot."""
+    """One measured (or published) configuration on the Pareto plot.
+
+    ``curve``: (step, held-out PSNR dB) pairs of the run's checks, in step order; ``psnr`` is
+    the final test PSNR after ``cfg.steps`` steps."""
 
     label: str
     cfg: TrainConfig
     psnr: float
     mem_mb: float = 0.0
     fits: bool = True
+    curve: list[tuple[int, float]] = dataclasses.field(default_factory=list)
+
+    def steps_to(self, target_db: float) -> int | None:
+        """The first step at which the run reached ``target_db``: its first held-out check at
+        or above it, else all its steps when the final test PSNR is; None when it never did."""
+        for step, psnr in self.curve:
+            if psnr >= target_db:
+                return step
+        return self.cfg.steps if self.psnr >= target_db else None
 
 
 def load_runs(paths: list[str | Path]) -> list[Point]:
@@ -111,7 +124,8 @@ def load_runs(paths: list[str | Path]) -> list[Point]:
             raise ValueError(f"{p}: not a metrics.json with 'psnr' and 'config' ({err})") from err
         if not math.isfinite(psnr) or not isinstance(cfg_d, dict):
             raise ValueError(f"{p}: 'psnr' must be a finite number and 'config' a dict")
-        points.append(Point(p.parent.name or str(p), config_from_dict(cfg_d), psnr))
+        curve = [(int(c["step"]), float(c["psnr"])) for c in doc.get("curve") or []]
+        points.append(Point(p.parent.name or str(p), config_from_dict(cfg_d), psnr, curve=curve))
     return points
 
 
@@ -128,6 +142,27 @@ def evaluate(points: list[Point], budget: Budget, platform: Platform | None = No
         rep = cost_report(pt.cfg, platform)
         pt.mem_mb = rep["memory"]["untiled"]["total"] / 1e6
         pt.fits = budget.check(rep)
+
+
+def to_target(
+    points: list[Point], target_db: float, platform: Platform | None = None
+) -> list[dict]:
+    """The modelled GAP9 cost of each point's run up to ``target_db``, cheapest energy first.
+
+    Each point is costed in GAP9 tiles (:func:`deployed`) for the steps it took to reach the
+    target (:meth:`Point.steps_to`); points that never reached it come last, with None.
+    Returns dicts: label, steps, ``joules``, ``minutes`` (GAP9 training time), mem_mb.
+    """
+    rows = []
+    for pt in points:
+        steps = pt.steps_to(target_db)
+        row = {"label": pt.label, "steps": steps, "mem_mb": pt.mem_mb, "joules": None,
+               "minutes": None}  # fmt: skip
+        if steps is not None:
+            rep = cost_report(deployed(pt.cfg.replace(steps=steps)), platform)
+            row |= {"joules": rep["energy"]["run"], "minutes": rep["latency"]["train"] / 60}
+        rows.append(row)
+    return sorted(rows, key=lambda r: (r["joules"] is None, r["joules"] or 0.0))
 
 
 def pareto_front(points: list[Point]) -> list[Point]:

@@ -52,6 +52,7 @@ class TrainConfig:
     grid_threshold: float = 0.01  # occupied if density > min(threshold, mean density)
     grid_warmup: int = 256  # steps during which every cell is updated every step
     grid_every: int = 16  # update interval after warm-up (paper's GAP9 run: 256)
+    grid_carve: bool = True  # alpha datasets: cells outside the views' silhouettes stay empty
     march_steps: int = 1024  # marching step = AABB diagonal / march_steps
     max_samples_per_ray: int = 1024
     # --- optimizer ------------------------------------------------------------------------
@@ -279,7 +280,11 @@ PHOTOMETRIC_MODES = ("auto", "on", "off")  # learn_exposure, learn_vignetting
 PHOTOMETRIC_FIELDS = ("learn_exposure", "learn_vignetting")
 # fields added after configs were first written: the value a config written without them was
 # trained with (the resolved configs in run.json and checkpoints; see resolve.Resolved)
-LEGACY_VALUES: dict[str, Any] = {"learn_exposure": "off", "learn_vignetting": "off"}
+LEGACY_VALUES: dict[str, Any] = {
+    "learn_exposure": "off",
+    "learn_vignetting": "off",
+    "grid_carve": False,
+}
 
 
 def problems(cfg: TrainConfig) -> list[str]:

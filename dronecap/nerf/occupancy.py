@@ -32,10 +32,21 @@ class GridConfig:
 
 @dataclass
 class GridState:
-    """density: float32 [R^3] EMA optical thickness; occupied: bool [R^3] (x-major index)."""
+    """density: float32 [R^3] EMA optical thickness; occupied: bool [R^3] (x-major index);
+    allowed: bool [R^3] cells that may ever be occupied (the visual hull, :mod:`.carve`), or
+    None (every cell)."""
 
     density: Tensor
     occupied: Tensor
+    allowed: Tensor | None = None
+
+
+def restrict(state: GridState, allowed: Tensor | None) -> GridState:
+    """``state`` with only ``allowed`` cells (bool [R^3], None: all) ever occupied, from now on."""
+    if allowed is None:
+        return state
+    allowed = allowed.to(state.occupied.device)
+    return GridState(state.density, state.occupied & allowed, allowed)
 
 
 def init_state(cfg: GridConfig, device: str | torch.device = "cpu") -> GridState:
@@ -86,7 +97,8 @@ def update(
     """One grid update before optimizer step ``step``; returns the new state.
 
     Before ``warmup`` steps every cell is sampled; later a quarter of the cells uniformly and
-    a quarter drawn among the occupied ones.
+    a quarter drawn among the occupied ones. With ``state.allowed`` (the visual hull) only
+    allowed cells are sampled: the others stay empty whatever the field says.
 
     Args:
         density_fn: points [N, 3] -> sigma [N] (scene units^-1).
@@ -95,10 +107,12 @@ def update(
     """
     n = cfg.res**3
     dev = state.density.device
+    pool = None if state.allowed is None else state.allowed.nonzero().squeeze(1)
     if step < cfg.warmup:
-        cells = torch.arange(n, device=dev)
+        cells = torch.arange(n, device=dev) if pool is None else pool
     else:
         uniform = torch.randint(n, (n // 4,), generator=generator, device=dev)
+        uniform = uniform if pool is None else pool[uniform % max(pool.numel(), 1)]
         occ = state.occupied.nonzero().squeeze(1)
         pick = torch.randint(max(occ.numel(), 1), (n // 4,), generator=generator, device=dev)
         cells = torch.cat([uniform, occ[pick] if occ.numel() else occ])
@@ -109,7 +123,7 @@ def update(
         fresh.scatter_reduce_(0, c, torch.nan_to_num(sigma * step_size), "amax")
     density = torch.maximum(state.density * cfg.decay, fresh)
     thresh = min(cfg.threshold, float(density.mean()))
-    return GridState(density, density > thresh)
+    return restrict(GridState(density, density > thresh), state.allowed)
 
 
 def to_numpy(state: GridState) -> dict:

@@ -6,8 +6,9 @@ through the grid, keep whole rays up to B samples, render them tile by tile (til
 ``tile_samples`` samples, gradients accumulated: the sum over tiles of ``loss_tile / R`` is the
 full-batch loss), the camera's learned exposure and vignetting applied to the rendered colour
 when on (:mod:`nerf.photometric`), Huber loss against the pixels composited on a random
-background (images with alpha), one Adam step. Non-finite losses or gradients skip the step; a
-run of them stops training with :class:`TrainingDiverged` before any weight becomes
+background (images with alpha), one Adam step. With alpha masks the grid never marks a cell
+outside the views' silhouettes (:mod:`nerf.carve`). Non-finite losses or gradients skip the
+step; a run of them stops training with :class:`TrainingDiverged` before any weight becomes
 non-finite.
 """
 
@@ -25,7 +26,7 @@ from dronecap.camera import Camera
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
-from . import occupancy
+from . import carve, occupancy
 from .batch import RayBatch, draw_rays, whole_rays
 from .checkpoint import checkpoint_resolved, read_checkpoint, write_checkpoint
 from .config import TrainConfig
@@ -81,12 +82,8 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
         self.field = Field(cfg, scene.channels, scene.aabb, backend).to(self.device)
-        self.photometric = Photometric(
-            cfg.train_images,
-            scene.channels,
-            exposure=cfg.learn_exposure == "on",
-            vignetting=cfg.learn_vignetting == "on",
-        ).to(self.device)
+        on = {"exposure": cfg.learn_exposure == "on", "vignetting": cfg.learn_vignetting == "on"}
+        self.photometric = Photometric(cfg.train_images, scene.channels, **on).to(self.device)
         table = [self.field.encoding.table]
         groups = [
             {"params": table, "weight_decay": 0.0},
@@ -134,6 +131,9 @@ class Trainer:
         )
         self.poses = torch.as_tensor(train.poses[idx], dtype=torch.float32, device=self.device)
         self.cameras, self.camera_index = frame_cameras(train, idx, self.device)
+        if self.cfg.grid_carve and self.alpha is not None:
+            args = (self.aabb, self.alpha, self.poses, self.cameras, self.camera_index)
+            self.grid = occupancy.restrict(self.grid, carve.hull(self.grid_cfg.res, *args))
         self.camera = self.cameras[0]
         if self.photometric.resize_frames(idx.size):  # other frames: their gains start at 1
             group = self.optimizer.param_groups[PHOTOMETRIC_GROUP]
@@ -334,7 +334,7 @@ class Trainer:
         n = self.grid_cfg.res**3
         if np.size(g["density"]) != n or np.size(g["occupied"]) != n:
             raise InputError(f"occupancy grid has the wrong size (expected {n} cells)")
-        self.grid = occupancy.from_numpy(g, self.device)
+        self.grid = occupancy.restrict(occupancy.from_numpy(g, self.device), self.grid.allowed)
 
     def save(self, path: str | Path) -> None:
         """Write a full checkpoint atomically (resolved config and scene, weights, photometric

@@ -207,3 +207,34 @@ def test_parse_set_and_config_from_dict():
         apply_sets(cfg, ["auto_n_max=maybe"])
     back = config_from_dict({**dataclasses.asdict(cfg), "unknown": 1})
     assert back == cfg
+
+
+def test_steps_to_a_psnr_reads_the_curve():
+    cfg = preset("tiny-dronerf").replace(steps=1000)
+    pt = Point("r", cfg, 28.0, curve=[(100, 20.0), (300, 26.0), (500, 27.1), (700, 26.9)])
+    assert pt.steps_to(27.0) == 500  # the first check at or above the target
+    assert pt.steps_to(27.5) == 1000  # only the final test score reaches it
+    assert pt.steps_to(29.0) is None
+
+
+def test_search_ranks_runs_by_energy_to_a_psnr(tmp_path, capsys):
+    cfg = dataclasses.asdict(preset("tiny-dronerf").replace(steps=2000))
+    curves = {"slow": [(1500, 27.0)], "fast": [(400, 26.0), (800, 27.2)], "never": [(2000, 25)]}
+    runs = []
+    for name, curve in curves.items():
+        (tmp_path / name).mkdir()
+        doc = {"test": {"psnr": curve[-1][1]}, "config": cfg,
+               "curve": [{"step": s, "seconds": s / 100, "psnr": p} for s, p in curve]}  # fmt: skip
+        (tmp_path / name / "metrics.json").write_text(json.dumps(doc))
+        runs.append(str(tmp_path / name / "metrics.json"))
+    argv = ["cost", "--search", "--budget-l3", "32MB", "--runs", *runs, "--target-psnr", "27"]
+    assert main([*argv, "--plot", str(tmp_path / "p.png")]) == 0
+    out = capsys.readouterr().out
+    table = out[out.index("cheapest energy first") :].splitlines()
+    order = [ln.split()[0] for ln in table[2:5]]
+    assert order == ["fast", "slow", "never"]
+    fast, slow = (next(ln.split() for ln in table if ln.startswith(n)) for n in ("fast", "slow"))
+    assert (fast[1], slow[1]) == ("800", "1500")
+    # same model: energy grows with the steps (the warm-up is paid by both)
+    assert float(fast[3]) < float(slow[3])
+    assert "never reached" in out and "SoC power: 60 mW" in out and "ASSUMPTION" in out
