@@ -120,7 +120,6 @@ def _scheme(a: argparse.Namespace, lego: Path, drones: int, scheme: str) -> list
     paths = [shards / f"client_{k}.h5" for k in range(drones)]
     cfg = dataclasses.asdict(resolve_once(preset("scene-sized"), paths).config)
     folder = {n: a.work / f"{scheme}_{drones}_{n.replace(' ', '_')}" for n in VARIANTS}
-    rows = []
     for name in a.variants:
         run, first = folder[name], folder[REFERENCE]
         s = _settings(a, paths, cfg, name)
@@ -135,8 +134,9 @@ def _scheme(a: argparse.Namespace, lego: Path, drones: int, scheme: str) -> list
                 engines.run_simulated(run, engines.SimulationResources(total_cpus=2))
             print(f"{run.name}: {time.perf_counter() - t0:.0f} s, load {os.getloadavg()}")
             a.load.append(os.getloadavg())
-        if (run / fed.FINAL).exists():
-            rows.append(_row(a, scheme, drones, name, run))
+    ran = {n: folder[n] for n in a.variants if len(fed.load_rounds(folder[n])) > 1}
+    common = min((fed.load_rounds(run)[-1]["round"] for run in ran.values()), default=0)
+    rows = [_row(a, scheme, drones, n, run, common) for n, run in ran.items()]
     base = a.work / f"baselines_{scheme}_{drones}"
     names = ["centralized"] + ([f"client_{k}" for k in range(drones)] if a.singles else [])
     if not a.report and a.only != "federated":
@@ -144,6 +144,8 @@ def _scheme(a: argparse.Namespace, lego: Path, drones: int, scheme: str) -> list
         run_baselines(base, _settings(a, paths, cfg, REFERENCE), curve_marks=False, names=names)
     scores = {n: _score(a, base / "baselines" / f"{n}.pt", paths[0]) for n in names}
     for r in rows:
+        if r["rounds"] < a.rounds:  # a stopped run: the baselines' budget is not its own
+            scores = {n: float("nan") for n in scores}
         r["central"] = scores.get("centralized", float("nan"))
         singles = {n: v for n, v in scores.items() if n != "centralized"}
         r["single"], r["single_name"] = (
@@ -170,9 +172,12 @@ def _score(a: argparse.Namespace, checkpoint: Path, shard: Path) -> float:
     return float(Trainer.load(checkpoint).evaluate(fed.test_split(shard, a.score_views))["psnr"])
 
 
-def _row(a: argparse.Namespace, scheme: str, drones: int, name: str, run: Path) -> dict:
-    """One table row from a finished run (round 0 is the pretraining: not counted)."""
-    rounds = fed.load_rounds(run)
+def _row(a: argparse.Namespace, scheme: str, drones: int, name: str, run: Path, last: int) -> dict:
+    """One table row from a run's rounds 1..``last`` (round 0 is the pretraining: not
+    counted); its PSNR is the global model's after round ``last`` (the last round every
+    variant of the scheme reached, when some were stopped)."""
+    rounds = fed.load_rounds(run)[: last + 1]
+    model = fed.round_file(run / "global", last)
     up = [b for r in rounds[1:] for b in r["bytes_up"].values()]
     down = [b for r in rounds[1:] for b in r["bytes_down"].values()]
     return dict(
@@ -183,7 +188,7 @@ def _row(a: argparse.Namespace, scheme: str, drones: int, name: str, run: Path) 
         down=statistics.median(down),
         down_max=max(down),
         wifi=statistics.median(r["wifi_s"] for r in rounds[1:]),
-        psnr=_score(a, run / fed.FINAL, Path(fed.load_settings(run).shards[0])),
+        psnr=_score(a, model, Path(fed.load_settings(run).shards[0])),
         rounds=rounds[-1]["round"],
         left_out=sum(len(r["failed"]) for r in rounds),
         wall=sum(r["wall_s"] for r in rounds),
@@ -201,25 +206,26 @@ def _write(a: argparse.Namespace, rows: list[dict]) -> None:
         f"N_l = {a.local_steps}, R = {a.rounds} ({a.pretrain + a.rounds * a.local_steps} steps "
         "on every method's critical path: a short schedule for a shared 2-core machine, PSNRs "
         "are far below converged ones; compare rows of one scheme and swarm size). PSNR of "
-        f"every final model on the same {a.score_views} evenly spaced test views; bytes as "
-        "Flower serialises them, median over drones and rounds 1..R (down max: round 1's whole "
-        "model); Wi-Fi s: one round's uploads and downloads in turn at the AI-deck's "
-        f"~614 kB/s; wall: the run's rounds. 1-minute load average at the start and after each "
-        f"run: {loads}.",
+        "each global model after the round given (R, or the last round every variant of the "
+        "scheme reached when runs were stopped; baselines only at R) and of the baselines, on "
+        f"the same {a.score_views} evenly spaced test views; bytes as Flower serialises them, "
+        "median over drones and rounds (down max: round 1's whole model); Wi-Fi s: one round's "
+        "uploads and downloads in turn at the AI-deck's ~614 kB/s; wall: the run's rounds. "
+        f"1-minute load average when this table was written: {loads}.",
         "",
         f"Command: `.venv/bin/python benchmarks/federated_compression.py --work {a.work} "
         f"--pretrain {a.pretrain} --local-steps {a.local_steps} --rounds {a.rounds} "
         f"--drones {' '.join(map(str, a.drones))} --schemes {' '.join(a.schemes)} "
         f"--score-views {a.score_views}{' --singles' if a.singles else ''}`",
         "",
-        "| scheme | drones | variant | up B/drone/round | down B/drone/round | down max | "
+        "| scheme | drones | variant | rounds | up B/drone/round | down B/drone/round | down max | "
         "Wi-Fi s/round | PSNR dB | vs fp16 M | vs central | vs best single | wall s |",
-        "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         vs = r["psnr"] - ref.get((r["scheme"], r["drones"]), float("nan"))
         lines.append(
-            f"| {r['scheme']} | {r['drones']} | {r['variant']} | {r['up']:,.0f} | "
+            f"| {r['scheme']} | {r['drones']} | {r['variant']} | {r['rounds']} | {r['up']:,.0f} | "
             f"{r['down']:,.0f} | {r['down_max']:,.0f} | {r['wifi']:.2f} | {r['psnr']:.2f} | "
             f"{vs:+.2f} | {r['psnr'] - r['central']:+.2f} | {r['psnr'] - r['single']:+.2f} | "
             f"{r['wall']:.0f} |"
