@@ -1,12 +1,16 @@
 """Sparse downloads: the server sends the change of the global model, each drone keeps its copy.
 
 Every drone holds the same *replica* of the global model: the model it starts a round from.
-After a round the server encodes the change ``global - replica`` with the upload codec
-(:func:`dronecap.federated.sparse.encode_update`: the ``rows`` fraction of most changed
-hash-table rows at ``bits`` bits, the MLPs at 8 bits) and both sides add the decoded change to
-their replica with the same float32 operation (:func:`dronecap.federated.fedavg.decode_reply`),
-so server and drones stay bit-identical. What was not sent stays in ``global - replica`` and
-is sent in a later round (the server's error feedback needs no extra state).
+After a round the server encodes the change from the replica to its new model (after the
+server step) with the upload codec (:func:`dronecap.federated.sparse.encode_update`: the
+``rows`` fraction of most changed hash-table rows at ``bits`` bits, the MLPs at 8 bits) and
+both sides add the decoded change to their replica with the same float32 operation
+(:func:`dronecap.federated.fedavg.decode_reply`), so server and drones stay bit-identical. The
+new replica *is* the new global model (:class:`~dronecap.federated.fedavg.DroneFedAvg`): what
+was not sent is dropped, and the FedAvgM momentum carries it into later rounds. Keeping it in
+the server's model instead (error feedback) made the model drift: drones start from the replica,
+so every round they re-learn the changes they have not received, and the server added them
+again each time (measured in docs/federated.md).
 
 A drone can take the change only if it holds the replica it applies to: the one of the
 previous round, which it saved when it trained that round. The server knows who does (the
@@ -113,38 +117,26 @@ class Downlink:
         self.round += 1
         self.holders = set(holders)
 
-    def save(self, folder: Path) -> None:
-        """Write the replica (``folder/replica_RRR.npz``); a resume rebuilds the change by
-        :meth:`advance` from the previous round's file and the saved global model."""
-        with atomic_output(replica_file(folder, self.round)) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **self.replica)
-
     @classmethod
     def for_run(
-        cls,
-        s: FedSettings,
-        run_dir: Path,
-        history: list[dict],
-        current: Mapping[str, np.ndarray],
-        nodes: Mapping[int, int],
+        cls, s: FedSettings, history: list[dict], current: Mapping[str, np.ndarray]
     ) -> Downlink | None:
         """The server's downlink after the last round in ``history`` (None: the run broadcasts
-        whole arrays). ``current``: the global model as packed arrays; ``nodes``: partition ->
-        node id. A resumed run rebuilds the last change from the previous replica and the
-        saved global model, as the run made it."""
+        whole arrays). ``current``: the global model as packed arrays; after round 0 the
+        replica is its fp16 rounding, later it is the global model itself. A resumed run
+        sends every drone the whole model once."""
         if not (s.quant_bits and s.down_rows):
             return None
-        model, folder, last = unpack_update(current)[0], Path(run_dir) / "global", history[-1]
-        if last["round"] == 0:
-            link = cls.start(model, s.down_rows, s.quant_bits)
-        else:
-            with np.load(replica_file(folder, last["round"] - 1)) as z:
-                replica = {k: z[k] for k in z.files}
-            link = cls(replica, last["round"] - 1, set(), s.down_rows, s.quant_bits)
-            link.advance(model, {nodes[int(k)] for k in last["bytes_up"]})
-        link.save(folder)
-        return link
+        model, last = unpack_update(current)[0], history[-1]["round"]
+        if last == 0:
+            return cls.start(model, s.down_rows, s.quant_bits)
+        return cls(model, last, set(), s.down_rows, s.quant_bits)
+
+
+def replica_file(folder: Path, r: int) -> Path:
+    """``folder/replica_RRR.npz``: a drone's replica, the model it started round ``r + 1``
+    from."""
+    return Path(folder) / f"replica_{r:03d}.npz"
 
 
 def broadcast(
@@ -177,8 +169,3 @@ def receive(content: RecordDict, folder: Path, r: int) -> dict[str, np.ndarray]:
             np.savez(f, **model)
     rest = from_record(ArrayRecord({k: v for k, v in record.items() if not k.startswith(MODEL)}))
     return {**rest, **{MODEL + k: v for k, v in model.items()}}
-
-
-def replica_file(folder: Path, r: int) -> Path:
-    """``folder/replica_RRR.npz``: the replica drones start round ``r + 1`` from."""
-    return Path(folder) / f"replica_{r:03d}.npz"

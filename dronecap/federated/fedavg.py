@@ -245,6 +245,9 @@ class DroneFedAvg(FedAvgM):
         avg = masked_mean(deltas, weights, vis)
         x = from_record(self.current_arrays) if self.current_arrays is not None else base
         new = self._server_step(x, {k: (x[k] + avg[k]).astype(np.float32) for k in base})
+        if self.downlink is not None:  # the global model is what the drones will hold
+            self.downlink.advance(unpack_update(new)[0], set(self.last_round["bytes_up"]))
+            new.update({MODEL + k: v for k, v in self.downlink.replica.items()})
         self.current_arrays, self.base = to_record(new), new
         return to_record(new), MetricRecord({"participants": len(ok)})
 

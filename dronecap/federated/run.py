@@ -290,7 +290,7 @@ def serve(grid: Grid, run_dir: Path) -> None:
         save_rounds(run_dir, s, history)
     last = history[-1]["round"]
     current = pack_update(*evaluator.load_global(run_dir, last), "fp32")
-    downlink = Downlink.for_run(s, run_dir, history, current, nodes)
+    downlink = Downlink.for_run(s, history, current)
     strategy = DroneFedAvg(
         min_train_nodes=s.n_clients,
         min_available_nodes=s.n_clients,
@@ -335,9 +335,6 @@ def serve(grid: Grid, run_dir: Path) -> None:
         history.append(evaluator.finish_round(run_dir, r, update, entry, t0))
         save_momentum(run_dir, r, strategy.server_state())
         save_rounds(run_dir, s, history)
-        if downlink is not None:
-            downlink.advance(unpack_update(update)[0], set(st["bytes_up"]))
-            downlink.save(run_dir / "global")
         arrays = broadcast(s, update, downlink)
     evaluator.write_final(run_dir, history[-1]["round"])
 
