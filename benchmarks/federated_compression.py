@@ -131,7 +131,7 @@ def _scheme(a: argparse.Namespace, lego: Path, drones: int, scheme: str) -> list
             done = fed.load_rounds(run)
             t0 = time.perf_counter()
             if not done or done[-1]["round"] < a.rounds:
-                engines.run_simulated(run, engines.SimulationResources(total_cpus=2))
+                _simulate(run)
             print(f"{run.name}: {time.perf_counter() - t0:.0f} s, load {os.getloadavg()}")
             a.load.append(os.getloadavg())
     ran = {n: folder[n] for n in a.variants if len(fed.load_rounds(folder[n])) > 1}
@@ -152,6 +152,19 @@ def _scheme(a: argparse.Namespace, lego: Path, drones: int, scheme: str) -> list
             max((v, n) for n, v in singles.items()) if singles else (float("nan"), "")
         )
     return rows
+
+
+def _simulate(run: Path, attempts: int = 3) -> None:
+    """Run (or resume) a federation; Ray's start-up gives up after 30 s, which a loaded
+    machine exceeds: try again (the run resumes after its last recorded round)."""
+    for attempt in range(attempts):
+        try:
+            engines.run_simulated(run, engines.SimulationResources(total_cpus=2))
+            return
+        except RuntimeError as err:
+            if attempt == attempts - 1:
+                raise
+            print(f"{run.name}: {err}; trying again")
 
 
 def _copy_pretraining(src: Path, dst: Path, s: fed.FedSettings) -> None:
