@@ -51,6 +51,14 @@ class Settings(Base):
         help="with --quant-bits: fraction of hash-table rows a drone sends, the most changed "
         "(default 0.03)",
     )
+    down_rows: float = setting(
+        0.0,
+        minimum=0.0,
+        maximum=1.0,
+        help="with --quant-bits: the server broadcasts the global model's change, this fraction "
+        "of hash-table rows (the most changed), each drone keeping its copy, e.g. 0.05; 0: the "
+        "whole model every round (default: not yet measured better over 10 rounds)",
+    )
     compress: bool = setting(
         False,
         help="with --quant-bits 0: send every array losslessly compressed (byte shuffle + "

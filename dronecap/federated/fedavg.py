@@ -22,11 +22,14 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from flwr.app import Array, ArrayRecord, Message, MetricRecord, RecordDict
+from flwr.app import Array, ArrayRecord, ConfigRecord, Message, MetricRecord, RecordDict
 from flwr.serverapp.strategy import FedAvgM
+
+if TYPE_CHECKING:
+    from dronecap.federated.downlink import Downlink
 
 MODEL = "model/"
 GRID = "grid/"
@@ -176,20 +179,36 @@ class DroneFedAvg(FedAvgM):
     (node id -> reason).
     """
 
-    def __init__(self, visibility: bool = False, **kwargs: Any) -> None:
+    def __init__(
+        self, visibility: bool = False, downlink: Downlink | None = None, **kwargs: Any
+    ) -> None:
         kwargs.setdefault("weighted_by_key", WEIGHT_KEY)
         kwargs.setdefault("fraction_evaluate", 0.0)  # the global model is tested server-side
         super().__init__(**kwargs)
         self.visibility = visibility
+        self.downlink = downlink
         self.known_examples: dict[int, int] = {}
         self.base: dict[str, np.ndarray] = {}
         self.last_round: dict[str, Any] = {"bytes_down": {}, "bytes_up": {}, "failed": {}}
 
-    def configure_train(self, server_round, arrays, config, grid) -> Iterable[Message]:  # noqa: D102
+    def configure_train(self, server_round, arrays, config, grid) -> Iterable[Message]:
+        """Flower's messages of a round; with a ``downlink`` (sparse downloads) each drone's
+        model arrays are replaced by what :meth:`Downlink.record_for` sends it, and ``arrays``
+        carries only the rest (an exchanged grid). ``self.base`` becomes the model the drones
+        start from (their updates are decoded against it)."""
+        from dronecap.federated.downlink import BASE_KEY
+
         messages = list(super().configure_train(server_round, arrays, config, grid))
+        self.base = {k: v.astype(np.float32) for k, v in from_record(arrays).items()}
+        if self.downlink is not None:
+            self.base.update({MODEL + k: v for k, v in self.downlink.replica.items()})
+            for m in messages:
+                model, base_round = self.downlink.record_for(m.metadata.dst_node_id)
+                record = ArrayRecord({**dict(arrays.items()), **dict(model.items())})
+                own = ConfigRecord({**dict(config.items()), BASE_KEY: base_round})
+                m.content = RecordDict({self.arrayrecord_key: record, self.configrecord_key: own})
         down = {m.metadata.dst_node_id: payload_bytes(m.content) for m in messages}
         self.last_round = {"bytes_down": down, "bytes_up": {}, "failed": {}}
-        self.base = {k: v.astype(np.float32) for k, v in from_record(arrays).items()}
         return messages
 
     def aggregate_train(  # noqa: D102
@@ -224,16 +243,21 @@ class DroneFedAvg(FedAvgM):
         weights = {n: float(known[n]) for n in ok}
         vis = {n: masks[n] for n in ok} if self.visibility else {}
         avg = masked_mean(deltas, weights, vis)
-        new = self._server_step({k: (base[k] + avg[k]).astype(np.float32) for k in base})
-        self.current_arrays = to_record(new)
+        x = from_record(self.current_arrays) if self.current_arrays is not None else base
+        new = self._server_step(x, {k: (x[k] + avg[k]).astype(np.float32) for k in base})
+        if self.downlink is not None:  # the global model is what the drones will hold
+            self.downlink.advance(unpack_update(new)[0], set(self.last_round["bytes_up"]))
+            new.update({MODEL + k: v for k, v in self.downlink.replica.items()})
+        self.current_arrays, self.base = to_record(new), new
         return to_record(new), MetricRecord({"participants": len(ok)})
 
-    def _server_step(self, avg: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """FedAvgM's step from ``self.current_arrays`` towards the average ``avg`` (plain
-        FedAvg, ``avg`` itself, with lr 1 and no momentum)."""
+    def _server_step(
+        self, x: dict[str, np.ndarray], avg: dict[str, np.ndarray]
+    ) -> dict[str, np.ndarray]:
+        """FedAvgM's step from the global model ``x`` towards ``avg``, the global model plus
+        the drones' mean change (plain FedAvg, ``avg`` itself, with lr 1 and no momentum)."""
         if not self.server_opt:
             return avg
-        x = from_record(self.current_arrays)
         grad = [x[k] - avg[k] for k in x]
         if self.server_momentum > 0.0:
             if self.momentum_vector is not None:

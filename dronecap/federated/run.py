@@ -53,6 +53,7 @@ from flwr.clientapp import ClientApp
 from flwr.serverapp import Grid, ServerApp
 
 from dronecap.datasets.format import open_dataset
+from dronecap.federated.downlink import Downlink, broadcast, receive
 from dronecap.federated.fedavg import (
     MODEL,
     WEIGHT_KEY,
@@ -135,7 +136,7 @@ def _local_round(msg: Message, context: Context, pretrain: bool) -> Message:
         trainer = Trainer.load(round_file(folder, prev), train=train)
     else:
         trainer = Trainer(s.train_config(), train)
-    received = from_record(msg.content["arrays"]) if not pretrain else {}
+    received = {} if pretrain else receive(msg.content, folder, r)
     if not pretrain:
         install_global(trainer, received, rebuild=prev < 0)
         if prev < 0:
@@ -287,6 +288,9 @@ def serve(grid: Grid, run_dir: Path) -> None:
         entry = {"round": 0, "bytes_up": {"0": payload_bytes(reply.content)}, "bytes_down": {}}
         history.append(evaluator.finish_round(run_dir, 0, update, entry, t0))
         save_rounds(run_dir, s, history)
+    last = history[-1]["round"]
+    current = pack_update(*evaluator.load_global(run_dir, last), "fp32")
+    downlink = Downlink.for_run(s, history, current)
     strategy = DroneFedAvg(
         min_train_nodes=s.n_clients,
         min_available_nodes=s.n_clients,
@@ -294,15 +298,14 @@ def serve(grid: Grid, run_dir: Path) -> None:
         server_learning_rate=s.server_lr,
         server_momentum=s.server_momentum,
         visibility=s.visibility,
+        downlink=downlink,
     )
     strategy.known_examples = {
         node: len(open_dataset(s.shards[k]).indices("train")) for k, node in nodes.items()
     }
     part = {node: k for k, node in nodes.items()}
-    last = history[-1]["round"]
-    current = pack_update(*evaluator.load_global(run_dir, last), "fp32")
     strategy.resume(current, load_momentum(run_dir, last))
-    arrays = to_record(pack_update(*unpack_update(current), s.transfer_dtype), s.compress)
+    arrays = broadcast(s, current, downlink)
     for r in range(last + 1, s.rounds + 1):
         t0 = time.perf_counter()
         config = ConfigRecord({"run-dir": str(run_dir)})
@@ -332,7 +335,7 @@ def serve(grid: Grid, run_dir: Path) -> None:
         history.append(evaluator.finish_round(run_dir, r, update, entry, t0))
         save_momentum(run_dir, r, strategy.server_state())
         save_rounds(run_dir, s, history)
-        arrays = to_record(pack_update(*unpack_update(update), s.transfer_dtype), s.compress)
+        arrays = broadcast(s, update, downlink)
     evaluator.write_final(run_dir, history[-1]["round"])
 
 

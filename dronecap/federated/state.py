@@ -42,6 +42,8 @@ class FedSettings:
     compress: bool = False  # lossless shuffle + deflate of every array on the wire (fedavg.py)
     quant_bits: int = 0  # 8 or 4: sparse quantised updates (sparse.py); 0: whole arrays
     sparse_rows: float = 1.0  # with quant_bits: fraction of hash-table rows a drone sends
+    down_rows: float = 0.0  # with quant_bits: fraction of table rows of the global model's
+    # change broadcast each round (downlink.py); 0: the whole model is broadcast
     visibility: bool = False  # average each table row over the drones that sent it only
     server_lr: float = 1.0  # FedAvgM server step size (1 with momentum 0: plain FedAvg)
     server_momentum: float = 0.0  # FedAvgM server momentum

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from flwr.app import Message, MessageType, MetricRecord, RecordDict
 from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
-from flwr.supercore.task_identity import TaskIdentity
 
 from dronecap.datasets.format import Dataset, Intrinsics, write_dataset
 from dronecap.federated.fedavg import (
@@ -212,15 +211,6 @@ def test_rebuilt_grid_hides_less_than_one_probe_per_cell(cube_rgb):
     once, many = error(1), error(16)
     assert many < 0.8 * once
     assert many < 1.1 * kept
-
-
-@pytest.fixture
-def server_task(monkeypatch):
-    """The identity Flower gives a ServerApp's process (run 1, node 0, task 1): Messages need
-    it."""
-    monkeypatch.setattr(TaskIdentity, "_run_id", 1)
-    monkeypatch.setattr(TaskIdentity, "_node_id", 0)
-    monkeypatch.setattr(TaskIdentity, "_task_id", 1)
 
 
 def _replies(updates: list[dict[str, np.ndarray]], counts: list[int]) -> list[Message]:

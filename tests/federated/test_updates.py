@@ -9,7 +9,6 @@ import dataclasses
 import numpy as np
 import pytest
 from flwr.app import Array, ArrayRecord, Message, MessageType, MetricRecord, RecordDict
-from flwr.supercore.task_identity import TaskIdentity
 
 from dronecap.federated.checks import screen
 from dronecap.federated.fedavg import (
@@ -109,14 +108,6 @@ def test_visibility_weighting_does_not_dilute_rows_one_drone_saw():
     np.testing.assert_allclose(vis["t"][:, 0], [2.0, 2.0])  # row 1: drone 1's change alone
     zero = masked_mean({1: d1, 2: d2}, {1: 0.0, 2: 0.0}, {})  # no ZeroDivisionError: equal
     np.testing.assert_allclose(zero["t"], plain["t"])
-
-
-@pytest.fixture
-def server_task(monkeypatch):
-    """The identity Flower gives a ServerApp's process: Messages need it."""
-    monkeypatch.setattr(TaskIdentity, "_run_id", 1)
-    monkeypatch.setattr(TaskIdentity, "_node_id", 0)
-    monkeypatch.setattr(TaskIdentity, "_task_id", 1)
 
 
 def _reply(node: int, arrays, n: float) -> Message:
