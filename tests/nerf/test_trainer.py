@@ -39,7 +39,9 @@ def test_tile_accumulation_equals_full_batch(cube_rgb):
 
 
 def test_step_count_batch_size_and_learning(cube_rgb):
-    tr = Trainer(_cfg(steps=50, lr_schedule="constant"), cube_rgb)
+    # an uncarved grid: with the hull carved from the alpha masks the first steps already skip
+    # the background, so their loss starts lower and this 50-step drop is smaller
+    tr = Trainer(_cfg(steps=50, lr_schedule="constant", grid_carve=False), cube_rgb)
     logs = tr.train(50)
     assert tr.step == 50 and len(logs) == 50
     assert all(log["samples"] <= 1024 for log in logs)
