@@ -49,13 +49,7 @@ KNOWN_LOOPS: frozenset[frozenset[str]] = frozenset()
 # Modules and functions over the limits in folders other helpers own while issue 31 is worked
 # on in parallel; the lead empties these after merging their branches.
 ALLOWED_LONG_MODULES: frozenset[str] = frozenset()
-ALLOWED_LONG_FUNCTIONS: frozenset[str] = frozenset(  # "path/to/module.py:function"
-    {
-        "dronecap/nerf/sizing.py:size_to_scene",  # being split on branch scale
-        "dronecap/sfm/reconstruct.py:colmap_job",  # being split on branch scale
-        "dronecap/sfm/report.py:format_report",  # being split on branch scale
-    }
-)
+ALLOWED_LONG_FUNCTIONS: frozenset[str] = frozenset()  # "path/to/module.py:function"
 
 
 def modules() -> list[Path]:

@@ -141,6 +141,34 @@ def surface_cells(facts: SceneFacts) -> float:
     return 2.0 * (a * b + b * c + a * c)
 
 
+def _budgeted_table(
+    config: TrainConfig, facts: SceneFacts, memory_fn: MemoryFn, budget_bytes: float
+) -> tuple[int, str]:
+    """log2 of the largest hash table (at most the scene's surface in footprints needs) whose
+    modelled memory fits ``budget_bytes``, and the reason to print.
+
+    Raises:
+        ValueError: the smallest table considered does not fit.
+    """
+    need = surface_cells(facts)
+    cap = min(LOG2_T_RANGE[1], max(LOG2_T_RANGE[0], math.ceil(math.log2(max(need, 1)))))
+    fits = [
+        t
+        for t in range(LOG2_T_RANGE[0], cap + 1)
+        if memory_fn(config.replace(log2_hashmap=t)) <= budget_bytes
+    ]
+    if not fits:
+        smallest = memory_fn(config.replace(log2_hashmap=LOG2_T_RANGE[0]))
+        raise ValueError(
+            f"no model fits the memory budget of {budget_bytes / 1e6:.1f} MB: the "
+            f"smallest table (2^{LOG2_T_RANGE[0]}) needs {smallest / 1e6:.1f} MB"
+        )
+    return fits[-1], (
+        f"largest table within the {budget_bytes / 1e6:.3g} MB budget; the finest level "
+        f"would use up to 2^{math.log2(max(need, 1)):.1f} rows (AABB surface in footprints)"
+    )
+
+
 def size_to_scene(
     base: TrainConfig,
     facts: SceneFacts,
@@ -205,27 +233,10 @@ def size_to_scene(
         f"occupancy cells of ~{GRID_CELL_FOOTPRINTS:g} footprints (n_max {n_max} / "
         f"{GRID_CELL_FOOTPRINTS:g}, power of two in {list(GRID_RES_RANGE)})",
     )
-    need = surface_cells(facts)
-    cap = min(LOG2_T_RANGE[1], max(LOG2_T_RANGE[0], math.ceil(math.log2(max(need, 1)))))
     if "log2_hashmap" in fixed or memory_fn is None or budget_bytes is None:
         choose("log2_hashmap", cfg.log2_hashmap, "no memory budget: the preset's table")
     else:
-        best = None
-        for t in range(LOG2_T_RANGE[0], cap + 1):
-            if memory_fn(out.config.replace(log2_hashmap=t)) <= budget_bytes:
-                best = t
-        if best is None:
-            smallest = memory_fn(out.config.replace(log2_hashmap=LOG2_T_RANGE[0]))
-            raise ValueError(
-                f"no model fits the memory budget of {budget_bytes / 1e6:.1f} MB: the "
-                f"smallest table (2^{LOG2_T_RANGE[0]}) needs {smallest / 1e6:.1f} MB"
-            )
-        choose(
-            "log2_hashmap",
-            best,
-            f"largest table within the {budget_bytes / 1e6:.3g} MB budget; the finest level "
-            f"would use up to 2^{math.log2(max(need, 1)):.1f} rows (AABB surface in footprints)",
-        )
+        choose("log2_hashmap", *_budgeted_table(out.config, facts, memory_fn, budget_bytes))
     if memory_fn is not None:
         out.memory_bytes = float(memory_fn(out.config))
     return out

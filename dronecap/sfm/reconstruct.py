@@ -41,6 +41,10 @@ TINY_MODEL = 0.5  # our start registered under this fraction of usable frames: a
 ALT_MODELS = "models_alt"  # folder of the models COLMAP started from its own initial pair
 PAIR_TRIES = 3  # our initial pairs tried in turn (best first) until one starts a non-tiny model
 NARROW_PAIR_MARGIN = 0.8  # a pair under init_min_tri_angle starts with this x its measured angle
+NO_START = (
+    "the mapper found no initial pair with enough inliers and baseline"
+    " (a camera turning in place or hovering gives no baseline)"
+)
 
 
 def colmap_job(
@@ -75,29 +79,8 @@ def colmap_job(
         return time.perf_counter()
 
     n_drones = len(cameras)
-    on_ray = bool(opts.ray) and n_drones > 1
-    t = phase("extract" + (" + own pairs on Ray" if on_ray else ""))
-    if on_ray:
-        from dronecap.sfm.ray_front import front_end_on_ray
-
-        out["keypoints"], out["first_octave"], out["flight_matching"] = front_end_on_ray(
-            db, images, names, opts, cameras
-        )
-    else:
-        out["keypoints"], out["first_octave"] = extract_finer_when_sparse(
-            db, images, names, opts, cameras
-        )
-    times["extract"] = time.perf_counter() - t
-    usable = [n for n in names if out["keypoints"].get(n, 0) >= MIN_KEYPOINTS]
-    if len(usable) < 2:
-        out["stopped"] = f"only {len(usable)} frame(s) have at least {MIN_KEYPOINTS} SIFT keypoints"
-        return out
-
-    t = phase("match")
-    out["match"] = match(db, root, opts, len(names), swarm=n_drones > 1, own_pairs=not on_ray)
-    times["match"] = time.perf_counter() - t
-    if out["match"]["verified_pairs"] == 0:
-        out["stopped"] = "no pair of frames could be matched with a consistent geometry"
+    usable = _front_end(out, root, names, opts, cameras, phase)
+    if usable is None:
         return out
 
     def on_register(k: int) -> None:
@@ -125,10 +108,7 @@ def colmap_job(
         found.update(alt)
     out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
     if not found:
-        out["stopped"] = (
-            "the mapper found no initial pair with enough inliers and baseline"
-            " (a camera turning in place or hovering gives no baseline)"
-        )
+        out["stopped"] = NO_START
         return out
     size = _settle(
         out, found, root, names, len(usable), opts, refine_camera, deadline, phase, on_register
@@ -145,6 +125,44 @@ def colmap_job(
         out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
         times["refine_camera"] = time.perf_counter() - t
     return out
+
+
+def _front_end(
+    out: dict[str, Any],
+    root: Path,
+    names: list[str],
+    opts: SfmOptions,
+    cameras: list[tuple[str, list[float]] | None],
+    phase: Callable[..., float],
+) -> list[str] | None:
+    """Extract and match into ``root``'s database (a swarm's per-flight part on Ray with
+    ``opts.ray``), filling ``out``'s keypoints, first_octave, match and times. Returns the
+    frames with enough keypoints, or None after setting ``out["stopped"]``."""
+    db, images, times = root / "database.db", root / "images", out["times"]
+    on_ray = bool(opts.ray) and len(cameras) > 1
+    t = phase("extract" + (" + own pairs on Ray" if on_ray else ""))
+    if on_ray:
+        from dronecap.sfm.ray_front import front_end_on_ray
+
+        out["keypoints"], out["first_octave"], out["flight_matching"] = front_end_on_ray(
+            db, images, names, opts, cameras
+        )
+    else:
+        out["keypoints"], out["first_octave"] = extract_finer_when_sparse(
+            db, images, names, opts, cameras
+        )
+    times["extract"] = time.perf_counter() - t
+    usable = [n for n in names if out["keypoints"].get(n, 0) >= MIN_KEYPOINTS]
+    if len(usable) < 2:
+        out["stopped"] = f"only {len(usable)} frame(s) have at least {MIN_KEYPOINTS} SIFT keypoints"
+        return None
+    t = phase("match")
+    out["match"] = match(db, root, opts, len(names), swarm=len(cameras) > 1, own_pairs=not on_ray)
+    times["match"] = time.perf_counter() - t
+    if out["match"]["verified_pairs"] == 0:
+        out["stopped"] = "no pair of frames could be matched with a consistent geometry"
+        return None
+    return usable
 
 
 def _settle(

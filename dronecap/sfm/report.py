@@ -122,60 +122,86 @@ def format_report(report: dict[str, Any]) -> str:
     ]
     if report.get("message"):
         lines.append(f"  {report['message']}")
-    q = report.get("quality")
-    if q:
-        lines.append(
-            f"  points {q['points']} ({q['points_kept']} kept for bounds), mean track length "
-            f"{q['mean_track_length']:.2f}, mean reprojection error "
-            f"{q['mean_reprojection_error_px']:.3f} px"
-        )
-    if q and q.get("pose_jumps"):
-        lines.append(
-            f"  pose jumps: frame(s) {', '.join(map(str, q['pose_jumps']))} lie more than "
-            f"{JUMP_FACTOR:g} median steps off the path of their neighbours (check them)"
-        )
-    lines.extend(_bend_lines(report.get("bend_check") or {}))
-    cam = report.get("camera")
-    if cam:
-        dist = f" distortion {cam['distortion']}" if cam["distortion"] else ""
-        how = cam.get("mode", "fixed" if cam["fixed"] else "estimated")
-        src = f", from {cam['source']}" if cam.get("source", "none") != "none" else ""
-        lines.append(
-            f"  camera {cam['model']} ({how}{src}) fx={cam['fx']:.2f} fy={cam['fy']:.2f} "
-            f"cx={cam['cx']:.2f} cy={cam['cy']:.2f}{dist}"
-        )
-    lines.extend(drone_lines(report))
-    lines.extend(_initial_pair_lines(report.get("init_pair") or {}))
+    lines += _quality_lines(report.get("quality") or {})
+    lines += _bend_lines(report.get("bend_check") or {})
+    lines += _camera_lines(report.get("camera") or {})
+    lines += drone_lines(report)
+    lines += _initial_pair_lines(report.get("init_pair") or {})
     attempts = report.get("attempts") or []
     if len(attempts) > 1:
         tried = "; ".join(
             f"{' + '.join(a['remedies']) or 'first'}: {a['registered']} frames" for a in attempts
         )
         lines.append(f"  attempts: {tried}; kept: {report.get('remedy') or 'the first'}")
-    pri = report.get("priors")
-    if pri and "error" in pri:
-        lines.append(f"  priors: {pri['error']}")
-    elif pri and "position_median_m" not in pri:  # a swarm whose drones' frames differ
-        lines.append(
-            f"  priors: metres and z up from {pri['used']} frames ({pri['method']}: the drones' "
-            f"telemetry has no common frame), {pri['scale_m_per_unit']:.4g} m per SfM unit"
-        )
-    elif pri:
-        lines.append(
-            f"  priors: metres and z up from {pri['used']} frames ({pri['method']}), "
-            f"{pri['scale_m_per_unit']:.4g} m per SfM unit; recovered vs prior: position "
-            f"{pri['position_median_m']:.3f} m median, rotation "
-            f"{pri['rotation_median_deg']:.2f} deg median"
-        )
-        if pri.get("fallback_frames"):
-            lines.append(
-                f"  {len(pri['fallback_frames'])} unregistered frame(s) kept with their prior"
-            )
+    lines += _prior_lines(report.get("priors") or {})
     models = report.get("models")
     if models:
         found = ", ".join(f"{k} {v['frames']} ({v['reproj']:.2f} px)" for k, v in models.items())
         lines.append(f"  models (frames, reprojection error): {found}")
         lines.append(f"  kept: {report.get('chosen_model')}")
+    lines += _dropped_lines(report)
+    lines += _accuracy_lines(report.get("accuracy") or {})
+    t = report.get("times", {})
+    if t:
+        lines.append("  time: " + ", ".join(f"{k} {v:.1f}s" for k, v in t.items()))
+    return "\n".join(lines)
+
+
+def _quality_lines(q: dict[str, Any]) -> list[str]:
+    """Report lines on the model's points and pose jumps."""
+    if not q:
+        return []
+    lines = [
+        f"  points {q['points']} ({q['points_kept']} kept for bounds), mean track length "
+        f"{q['mean_track_length']:.2f}, mean reprojection error "
+        f"{q['mean_reprojection_error_px']:.3f} px"
+    ]
+    if q.get("pose_jumps"):
+        lines.append(
+            f"  pose jumps: frame(s) {', '.join(map(str, q['pose_jumps']))} lie more than "
+            f"{JUMP_FACTOR:g} median steps off the path of their neighbours (check them)"
+        )
+    return lines
+
+
+def _camera_lines(cam: dict[str, Any]) -> list[str]:
+    """The report line on the camera used (a swarm's first drone; the others in drone_lines)."""
+    if not cam:
+        return []
+    dist = f" distortion {cam['distortion']}" if cam["distortion"] else ""
+    how = cam.get("mode", "fixed" if cam["fixed"] else "estimated")
+    src = f", from {cam['source']}" if cam.get("source", "none") != "none" else ""
+    return [
+        f"  camera {cam['model']} ({how}{src}) fx={cam['fx']:.2f} fy={cam['fy']:.2f} "
+        f"cx={cam['cx']:.2f} cy={cam['cy']:.2f}{dist}"
+    ]
+
+
+def _prior_lines(pri: dict[str, Any]) -> list[str]:
+    """Report lines on the telemetry priors' fit."""
+    if not pri:
+        return []
+    if "error" in pri:
+        return [f"  priors: {pri['error']}"]
+    if "position_median_m" not in pri:  # a swarm whose drones' frames differ
+        return [
+            f"  priors: metres and z up from {pri['used']} frames ({pri['method']}: the drones' "
+            f"telemetry has no common frame), {pri['scale_m_per_unit']:.4g} m per SfM unit"
+        ]
+    lines = [
+        f"  priors: metres and z up from {pri['used']} frames ({pri['method']}), "
+        f"{pri['scale_m_per_unit']:.4g} m per SfM unit; recovered vs prior: position "
+        f"{pri['position_median_m']:.3f} m median, rotation "
+        f"{pri['rotation_median_deg']:.2f} deg median"
+    ]
+    if pri.get("fallback_frames"):
+        lines.append(f"  {len(pri['fallback_frames'])} unregistered frame(s) kept with their prior")
+    return lines
+
+
+def _dropped_lines(report: dict[str, Any]) -> list[str]:
+    """Report lines on the frames that did not register: where, and why."""
+    lines = []
     for r in report.get("dropped_runs", [])[:10]:
         span = f"{r['first']}" if r["count"] == 1 else f"{r['first']}-{r['last']}"
         lines.append(f"  dropped frames {span} ({r['count']}) at the {r['where']}")
@@ -185,25 +211,25 @@ def format_report(report: dict[str, Any]) -> str:
         reasons[key] = reasons.get(key, 0) + 1
     if reasons:
         lines.append("  why: " + ", ".join(f"{k}: {v}" for k, v in reasons.items()))
-    acc = report.get("accuracy")
-    if acc and "error" in acc:
-        lines.append(f"  accuracy: {acc['error']}")
-    elif acc:
-        lines.append(
-            f"  vs ground truth: ATE {acc['ate_rmse']:.4f} ({acc['ate_percent']:.2f}% of extent "
-            f"{acc['extent']:.3f}), rotation error median {acc['rot_median_deg']:.3f} deg, max "
-            f"{acc['rot_max_deg']:.3f} deg, registered {100 * acc['registration_rate']:.1f}%"
-        )
-        lines.append(
-            f"  consecutive-frame rotation error (no alignment): median "
-            f"{acc['step_rot_median_deg']:.3f} deg, max {acc['step_rot_max_deg']:.3f} deg"
-        )
-        if acc.get("warning"):
-            lines.append(f"  warning: {acc['warning']}")
-    t = report.get("times", {})
-    if t:
-        lines.append("  time: " + ", ".join(f"{k} {v:.1f}s" for k, v in t.items()))
-    return "\n".join(lines)
+    return lines
+
+
+def _accuracy_lines(acc: dict[str, Any]) -> list[str]:
+    """Report lines on the accuracy against ground truth."""
+    if not acc:
+        return []
+    if "error" in acc:
+        return [f"  accuracy: {acc['error']}"]
+    lines = [
+        f"  vs ground truth: ATE {acc['ate_rmse']:.4f} ({acc['ate_percent']:.2f}% of extent "
+        f"{acc['extent']:.3f}), rotation error median {acc['rot_median_deg']:.3f} deg, max "
+        f"{acc['rot_max_deg']:.3f} deg, registered {100 * acc['registration_rate']:.1f}%",
+        f"  consecutive-frame rotation error (no alignment): median "
+        f"{acc['step_rot_median_deg']:.3f} deg, max {acc['step_rot_max_deg']:.3f} deg",
+    ]
+    if acc.get("warning"):
+        lines.append(f"  warning: {acc['warning']}")
+    return lines
 
 
 def _bend_lines(bend: dict[str, Any]) -> list[str]:
