@@ -46,6 +46,8 @@ def union_train(paths: list[str]) -> Dataset:
         same = part.aabb is not None and first.aabb is not None
         if not same or not np.array_equal(part.aabb, first.aabb):
             raise InputError(f"has other scene bounds than {Path(paths[0]).name}", path)
+        if part.cameras != first.cameras:  # a swarm's shards share the dataset's camera table
+            raise InputError(f"has another camera table than {Path(paths[0]).name}", path)
 
     def cat(name: str) -> np.ndarray | None:
         if getattr(first, name) is None:
@@ -59,6 +61,8 @@ def union_train(paths: list[str]) -> Dataset:
         poses=cat("poses"),
         split=cat("split"),
         near_far=cat("near_far"),
+        camera_index=cat("camera_index"),
+        drone=cat("drone"),
         names=None,
         source_index=None,
         timestamps=None,

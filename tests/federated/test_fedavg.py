@@ -286,3 +286,34 @@ def test_each_drone_keeps_its_own_exposures_through_a_round(make_cube, tmp_path)
         install_global(tr, mean, rebuild=False)
         for name, value in tr.photometric.state_dict().items():
             torch.testing.assert_close(value, mine[name], rtol=0, atol=0)
+
+
+def test_union_of_a_swarms_drone_shards_keeps_each_frames_camera(tmp_path):
+    """Drone shards (a camera per drone): the centralized baseline's train set keeps every
+    frame's camera and drone; shards with other camera tables are refused."""
+    from dronecap.errors import InputError
+    from dronecap.federated.baselines import union_train
+
+    cams = [Intrinsics(10.0, 10.0, 2.0, 2.0, 4, 4), Intrinsics(11.0, 11.0, 2.0, 2.0, 4, 4)]
+
+    def shard(drone: int, n_train: int, cameras: list) -> str:
+        n = n_train + 1
+        ds = Dataset(
+            images=np.full((n, 4, 4, 1), drone, np.uint8),
+            kind="shard",
+            poses=np.tile(np.eye(4), (n, 1, 1)),
+            split=np.array([0] * n_train + [2], np.int8),
+            aabb=np.array([[-1.0, -1, -1], [1, 1, 1]]),
+        )
+        ds.drone = np.full(n, drone, np.int16)
+        ds.drone_names = ["a", "b"]
+        ds.set_cameras(cameras, np.full(n, drone))
+        p = tmp_path / f"client_{drone}_{len(cameras)}.h5"
+        write_dataset(p, ds)
+        return str(p)
+
+    u = union_train([shard(0, 2, cams), shard(1, 3, cams)])
+    assert u.n == 5 and u.drones().tolist() == [0, 0, 1, 1, 1]
+    assert [u.camera_of(i).fx for i in range(5)] == [10.0, 10.0, 11.0, 11.0, 11.0]
+    with pytest.raises(InputError, match="another camera table"):
+        union_train([shard(0, 2, cams), shard(1, 3, cams[::-1])])
