@@ -104,7 +104,7 @@ def load(name: str):
                 _say_once(BUILD_NOTICE)
             _loaded[name] = cpp_extension.load(
                 name=f"dronecap_{name}",
-                sources=[str(CSRC / source)],
+                sources=[str((CSRC / source).resolve())],  # the path the cache key hashes
                 extra_cflags=["-O3", "-march=native", "-fopenmp", *flags],
                 extra_ldflags=["-fopenmp"],
                 build_directory=str(folder),
