@@ -138,7 +138,8 @@ def reference_accuracy(work: Path) -> dict[str, float]:
         assert dronecap(["sfm", "--workdir", str(ref), "--quiet"])[0] == 0
     uncut, cut = open_dataset(ref / "posed.h5"), open_dataset(work / "posed.h5")
     truth = {int(s): p for s, p in zip(uncut.source_index, uncut.poses, strict=True)}
-    starts = [p[0] for p in pieces(72, shared=6)]  # piece k's frame j is source frame start+j
+    n = len(list(HIMAX.glob("frame_*.pgm")))
+    starts = [p[0] for p in pieces(n, shared=6)]  # piece k's frame j is source frame start+j
     source = [starts[d] + int(j) for d, j in zip(cut.drones(), cut.source_index, strict=True)]
     have = [i for i, s in enumerate(source) if s in truth]
     gt = np.stack([truth[source[i]] for i in have])
