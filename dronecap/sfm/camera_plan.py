@@ -8,7 +8,7 @@
   length(s) and the distortion. The principal point stays where the calibration put it (on
   160-px frames COLMAP cannot pin it down; AI-deck calibrations put it 30-60 px off the centre
   row).
-- **estimate**: self-calibration (SIMPLE_RADIAL). With a known camera its principal point is kept
+- **estimate**: self-calibration (RADIAL: one focal length, two radial terms). With a known camera its principal point is kept
   (never assumed at the centre when it is known); without, COLMAP puts it at the image centre.
 - **auto** (default): fixed when a camera is known (``camera_source`` "calibration" or
   "flight.json", a frames.h5 without the attribute but with intrinsics, or ``--camera-from``),
@@ -37,6 +37,9 @@ from dronecap.datasets.format import Dataset, open_dataset
 from dronecap.errors import InputError
 
 ESTIMATE_FOCAL_FACTOR = 1.2  # COLMAP's first guess of f: 1.2 x the larger image side
+# Self-calibrated camera model. Two radial terms: with one (SIMPLE_RADIAL) the focal length
+# absorbs the lens's k2 and came out +2 % on every drone of the simulated AI-deck swarm.
+ESTIMATE_MODEL = "RADIAL"
 ASPECT_TOLERANCE = 0.01  # --camera-from: image aspect ratios may differ by this fraction
 
 
@@ -45,7 +48,7 @@ class CameraPlan:
     """The camera handed to COLMAP and what bundle adjustment may refine."""
 
     mode: str  # "fixed" | "refine" | "estimate"
-    camera: Camera | None  # start values; None: COLMAP guesses (SIMPLE_RADIAL, centred)
+    camera: Camera | None  # start values; None: COLMAP guesses (ESTIMATE_MODEL, centred)
     source: str  # where the known camera came from ("calibration", a posed.h5 path, "none")
     others: tuple[Camera | None, ...] = ()  # a swarm: the cameras of drones 1, 2, ... (same mode)
 
@@ -137,6 +140,6 @@ def _plan(known: Camera | None, source: str, w: int, h: int, mode: str) -> Camer
         return CameraPlan("estimate", None, "none")
     if mode == "estimate":  # self-calibrate, but keep the known principal point
         f = ESTIMATE_FOCAL_FACTOR * max(w, h)
-        start = Camera(f, f, known.cx, known.cy, w, h, "SIMPLE_RADIAL", (0.0,))
+        start = Camera(f, f, known.cx, known.cy, w, h, ESTIMATE_MODEL, (0.0, 0.0))
         return CameraPlan("estimate", start, source)
     return CameraPlan(mode, dataclasses.replace(known), source)

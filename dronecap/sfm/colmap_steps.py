@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from dronecap.sfm.camera_plan import ESTIMATE_MODEL
 from dronecap.sfm.flights import flight_of
 from dronecap.sfm.options import FINEST_OCTAVE, SfmOptions
 from dronecap.sfm.retrieval import write_cross_flight_pairs
@@ -39,8 +40,8 @@ def extract(
 
     Args:
         cameras: per drone, (COLMAP model name, params) when intrinsics are known (params in
-            COLMAP's pixel convention), or None to let COLMAP guess a SIMPLE_RADIAL camera from
-            the image size.
+            COLMAP's pixel convention), or None to let COLMAP guess a camera of
+            ``ESTIMATE_MODEL`` from the image size.
 
     Returns:
         image name -> number of keypoints.
@@ -48,7 +49,7 @@ def extract(
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "SIMPLE_RADIAL"
+    reader.camera_model = ESTIMATE_MODEL
     if len(cameras) == 1 and cameras[0] is not None:
         reader.camera_model = cameras[0][0]
         reader.camera_params = ",".join(f"{v:.10g}" for v in cameras[0][1])
