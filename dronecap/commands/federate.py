@@ -78,6 +78,12 @@ class Settings(Base):
     server_momentum: float = setting(
         0.5, minimum=0.0, maximum=0.999, help="FedAvgM server momentum (default 0.5)"
     )
+    table_step: str = setting(
+        "server",
+        choices=("server", "mean"),
+        help="hash table: the FedAvgM server step as the MLPs, or the drones' mean change "
+        "itself (rows one drone saw are that drone's change)",
+    )
     baselines: bool = setting(
         False, help="also train centralized and single-drone baselines on the same step budget"
     )

@@ -28,6 +28,8 @@ import numpy as np
 from flwr.app import Array, ArrayRecord, ConfigRecord, Message, MetricRecord, RecordDict
 from flwr.serverapp.strategy import FedAvgM
 
+from dronecap.federated.sparse import TABLE
+
 if TYPE_CHECKING:
     from dronecap.federated.downlink import Downlink
 
@@ -174,19 +176,26 @@ class DroneFedAvg(FedAvgM):
     with ``server_learning_rate`` != 1 or ``server_momentum`` > 0, FedAvgM's server step
     ``m <- momentum * m + (x - avg)``, ``x <- x - lr * m`` (Hsu et al. 2019) from the float32
     global model ``self.current_arrays`` (set by :meth:`resume`); defaults (1, 0) are plain
-    FedAvg. After each ``configure_train``/``aggregate_train``, ``self.last_round`` holds
+    FedAvg. With ``table_step`` "mean" the hash table skips that step and takes the mean change
+    itself: a row seen by one drone (visibility-weighted, a swarm's drone shards) is that drone's
+    own change, which a server step of 2 would double. After each ``configure_train``/``aggregate_train``, ``self.last_round`` holds
     ``bytes_down`` (per destination node), ``bytes_up`` (per replying node) and ``failed``
     (node id -> reason).
     """
 
     def __init__(
-        self, visibility: bool = False, downlink: Downlink | None = None, **kwargs: Any
+        self,
+        visibility: bool = False,
+        downlink: Downlink | None = None,
+        table_step: str = "server",
+        **kwargs: Any,
     ) -> None:
         kwargs.setdefault("weighted_by_key", WEIGHT_KEY)
         kwargs.setdefault("fraction_evaluate", 0.0)  # the global model is tested server-side
         super().__init__(**kwargs)
         self.visibility = visibility
         self.downlink = downlink
+        self.table_step = table_step
         self.known_examples: dict[int, int] = {}
         self.base: dict[str, np.ndarray] = {}
         self.last_round: dict[str, Any] = {"bytes_down": {}, "bytes_up": {}, "failed": {}}
@@ -259,6 +268,8 @@ class DroneFedAvg(FedAvgM):
         if not self.server_opt:
             return avg
         grad = [x[k] - avg[k] for k in x]
+        mean_only = {MODEL + TABLE} if self.table_step == "mean" else set()
+        grad = [np.zeros_like(g) if k in mean_only else g for k, g in zip(x, grad, strict=True)]
         if self.server_momentum > 0.0:
             if self.momentum_vector is not None:
                 grad = [
@@ -266,7 +277,10 @@ class DroneFedAvg(FedAvgM):
                     for m, g in zip(self.momentum_vector, grad, strict=True)
                 ]
             self.momentum_vector = grad
-        return {k: x[k] - self.server_learning_rate * g for k, g in zip(x, grad, strict=True)}
+        return {
+            k: avg[k] if k in mean_only else x[k] - self.server_learning_rate * g
+            for k, g in zip(x, grad, strict=True)
+        }
 
     def server_state(self) -> dict[str, np.ndarray]:
         """The server optimizer's momentum ``{name: array}`` (empty before the first step or

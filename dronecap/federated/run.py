@@ -299,6 +299,7 @@ def serve(grid: Grid, run_dir: Path) -> None:
         server_momentum=s.server_momentum,
         visibility=s.visibility,
         downlink=downlink,
+        table_step=s.table_step,
     )
     strategy.known_examples = {
         node: len(open_dataset(s.shards[k]).indices("train")) for k, node in nodes.items()

@@ -47,6 +47,7 @@ class FedSettings:
     visibility: bool = False  # average each table row over the drones that sent it only
     server_lr: float = 1.0  # FedAvgM server step size (1 with momentum 0: plain FedAvg)
     server_momentum: float = 0.0  # FedAvgM server momentum
+    table_step: str = "server"  # hash table: "server" step like the MLPs, or "mean" (lr 1)
     eval_views: int = 0  # test views for the per-round PSNR (0: all)
     round_timeout: float = 3600.0  # seconds the server waits for a round's replies
     fail_client: int = -1  # fault injection: this partition (EVERY_CLIENT: all) raises ...

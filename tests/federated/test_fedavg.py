@@ -317,3 +317,29 @@ def test_union_of_a_swarms_drone_shards_keeps_each_frames_camera(tmp_path):
     assert [u.camera_of(i).fx for i in range(5)] == [10.0, 10.0, 11.0, 11.0, 11.0]
     with pytest.raises(InputError, match="another camera table"):
         union_train([shard(0, 2, cams), shard(1, 3, cams[::-1])])
+
+
+def test_table_step_mean_takes_the_drones_change_and_steps_the_mlps(server_task):
+    """``table_step="mean"``: the hash table lands on the mean of the drones' tables (a row one
+    drone saw is that drone's change), while the MLPs still take FedAvgM's server step."""
+    rng = np.random.default_rng(3)
+    x0 = {
+        "model/encoding.table": np.zeros((6, 2), np.float32),
+        "model/mlp": np.zeros(3, np.float32),
+    }
+    updates = [{"encoding.table": rng.normal(size=(6, 2)), "mlp": rng.normal(size=3)} for _ in "ab"]
+    ref = weighted_mean([{k: v.astype(np.float16) for k, v in u.items()} for u in updates], [1, 1])
+    out = {}
+    for step in ("mean", "server"):
+        strategy = DroneFedAvg(server_learning_rate=2.0, server_momentum=0.5, table_step=step)
+        strategy.resume(x0, {})
+        agg, _ = strategy.aggregate_train(1, _replies(updates, [10, 10]))
+        out[step] = from_record(agg)
+    np.testing.assert_allclose(
+        out["mean"]["model/encoding.table"], ref["encoding.table"], atol=1e-6
+    )
+    np.testing.assert_allclose(
+        out["server"]["model/encoding.table"], 2 * ref["encoding.table"], atol=1e-5
+    )
+    for step in out:  # the MLPs: x - lr * (x - avg) = 2 * avg from x = 0
+        np.testing.assert_allclose(out[step]["model/mlp"], 2 * ref["mlp"], atol=1e-5)
