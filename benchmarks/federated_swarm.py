@@ -145,10 +145,12 @@ def main(argv: list[str] | None = None) -> int:
     """Tabulate the run folders given; the first holds the baselines."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("runs", type=Path, nargs="+", help="federate run folders (first: baselines)")
+    p.add_argument("--note", default="", help="a paragraph written under the table")
     a = p.parse_args(argv)
     rows = [load_run(r) for r in a.runs]
     base = baselines(a.runs[0])
     text = report(rows, base, " ".join(f"{x:.2f}" for x in os.getloadavg()))
+    text += f"\n{a.note}\n" if a.note else ""
     print(text)
     RESULTS.mkdir(parents=True, exist_ok=True)
     with atomic_output(RESULTS / "federated_swarm.md") as tmp:
