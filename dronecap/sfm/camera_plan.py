@@ -8,8 +8,10 @@
   length(s) and the distortion. The principal point stays where the calibration put it (on
   160-px frames COLMAP cannot pin it down; AI-deck calibrations put it 30-60 px off the centre
   row).
-- **estimate**: self-calibration (RADIAL: one focal length, two radial terms). With a known camera its principal point is kept
-  (never assumed at the centre when it is known); without, COLMAP puts it at the image centre.
+- **estimate**: self-calibration: mapping with one focal length and one radial term
+  (SIMPLE_RADIAL), then a final bundle adjustment with a second radial term (RADIAL). With a
+  known camera its principal point is kept (never assumed at the centre when it is known);
+  without, COLMAP puts it at the image centre.
 - **auto** (default): fixed when a camera is known (``camera_source`` "calibration" or
   "flight.json", a frames.h5 without the attribute but with intrinsics, or ``--camera-from``),
   estimate otherwise.
@@ -28,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -37,9 +40,12 @@ from dronecap.datasets.format import Dataset, open_dataset
 from dronecap.errors import InputError
 
 ESTIMATE_FOCAL_FACTOR = 1.2  # COLMAP's first guess of f: 1.2 x the larger image side
-# Self-calibrated camera model. Two radial terms: with one (SIMPLE_RADIAL) the focal length
-# absorbs the lens's k2 and came out +2 % on every drone of the simulated AI-deck swarm.
-ESTIMATE_MODEL = "RADIAL"
+# Self-calibration maps with one radial term: mapping with two from the first frames let k2 run
+# away on the white lego orbit (k2 -4.1, 6 % registered). The final bundle adjustment adds the
+# second term (REFINED_MODEL): with one alone the focal length absorbs the lens's k2 and came
+# out +2 % on every drone of the simulated AI-deck swarm, with the second +0.5 %.
+ESTIMATE_MODEL = "SIMPLE_RADIAL"
+REFINED_MODEL = "RADIAL"
 ASPECT_TOLERANCE = 0.01  # --camera-from: image aspect ratios may differ by this fraction
 
 
@@ -64,10 +70,11 @@ class CameraPlan:
 
     @property
     def refine_after(self) -> bool:
-        """True when a final bundle adjustment refines them (refine): mapping keeps the camera
-        fixed, because refining a many-parameter model (OPENCV: 6 values) from the first few
-        frames of a 160-px flight diverges (measured: fx 222 -> 458, k1 -0.15 -> -4.5)."""
-        return self.mode == "refine"
+        """True when a final bundle adjustment refines them (refine, estimate). refine: mapping
+        keeps the camera fixed, because refining a many-parameter model (OPENCV: 6 values) from
+        the first few frames of a 160-px flight diverges (measured: fx 222 -> 458, k1 -0.15 ->
+        -4.5); estimate: the final adjustment adds the second radial term (:func:`refined`)."""
+        return self.mode in ("refine", "estimate")
 
     def colmap(self) -> tuple[str, list[float]] | None:
         """(COLMAP model name, params in COLMAP's order) or None (see ``camera.colmap``)."""
@@ -140,6 +147,20 @@ def _plan(known: Camera | None, source: str, w: int, h: int, mode: str) -> Camer
         return CameraPlan("estimate", None, "none")
     if mode == "estimate":  # self-calibrate, but keep the known principal point
         f = ESTIMATE_FOCAL_FACTOR * max(w, h)
-        start = Camera(f, f, known.cx, known.cy, w, h, ESTIMATE_MODEL, (0.0, 0.0))
+        start = Camera(f, f, known.cx, known.cy, w, h, ESTIMATE_MODEL, (0.0,))
         return CameraPlan("estimate", start, source)
     return CameraPlan(mode, dataclasses.replace(known), source)
+
+
+def refined(rec: Any) -> Any:
+    """``rec`` (a pycolmap Reconstruction) with every ``ESTIMATE_MODEL`` camera turned into a
+    ``REFINED_MODEL`` one (the same f, cx, cy, k1 and k2 = 0), ready for the final adjustment."""
+    import pycolmap
+
+    one, two = (getattr(pycolmap.CameraModelId, m) for m in (ESTIMATE_MODEL, REFINED_MODEL))
+    for cam in rec.cameras.values():
+        if cam.model == one:
+            params = [*cam.params, 0.0]
+            cam.model = two
+            cam.params = params
+    return rec

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from dronecap.sfm.bend import rotation_disagreement
-from dronecap.sfm.camera_plan import CameraPlan
+from dronecap.sfm.camera_plan import CameraPlan, refined
 from dronecap.sfm.colmap_steps import (
     MIN_KEYPOINTS,
     extract_finer_when_sparse,
@@ -59,7 +59,7 @@ def colmap_job(
     """Child-process body: extract, match, map, extend. Returns a JSON-able summary.
 
     ``cameras``: per drone (image folder, :func:`image_names`), (COLMAP model, params) to start
-    from, or None (COLMAP guesses SIMPLE_RADIAL);
+    from, or None (COLMAP guesses camera_plan.ESTIMATE_MODEL);
     ``refine_camera``: whether mapping refines focal length and distortion; ``refine_after``:
     whether a final bundle adjustment of the chosen model refines them (principal point fixed).
 
@@ -320,10 +320,11 @@ def remap_jumps(
 
 def refine_camera_of(model: Path, out: Path) -> str:
     """Bundle-adjust ``model`` refining focal length(s) and distortion (not the principal
-    point); written to ``out``, whose path is returned."""
+    point), a self-calibrated camera with a second radial term (``camera_plan.refined``);
+    written to ``out``, whose path is returned."""
     import pycolmap
 
-    rec = pycolmap.Reconstruction(model)
+    rec = refined(pycolmap.Reconstruction(model))
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_focal_length = True
     ba.refine_extra_params = True

@@ -39,7 +39,7 @@ def test_auto_estimates_without_a_camera():
 
 def test_estimate_keeps_a_known_principal_point():
     plan = plan_camera(frames(AIDECK, "flight.json"), "estimate")
-    assert plan.refine and not plan.refine_after and plan.camera.model == "SIMPLE_RADIAL"
+    assert plan.refine and plan.refine_after and plan.camera.model == "SIMPLE_RADIAL"
     model, params = plan.colmap()
     assert model == "SIMPLE_RADIAL"
     assert params[1:3] == [81.2, 101.0]  # not the image centre (80, 80)
