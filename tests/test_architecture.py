@@ -21,7 +21,7 @@ DOMAINS = frozenset(
      "federated"}
 )  # fmt: skip
 CLI_LAYER = frozenset(
-    {"cli", "stage", "stages", "stage_common", "pipeline", "pipeline_spec", "figures",
+    {"cli", "registry", "settings", "settings_cli", "pipeline", "pipeline_spec", "figures",
      "report_html", "commands", "pictures", "workspace"}
 )  # fmt: skip
 BASES = frozenset(

@@ -16,8 +16,8 @@ from dronecap import workspace
 from dronecap.calibration.calibrate import MAX_VIEW_ERROR_PX, MODELS
 from dronecap.calibration.targets import PATTERNS, SUBPIX_WINDOW
 from dronecap.calibration.views import MAX_VIEWS
-from dronecap.stage import Settings as Base
-from dronecap.stage import setting
+from dronecap.settings import Settings as Base
+from dronecap.settings import setting
 
 OUTPUT = workspace.CALIBRATION  # default output, in the workspace
 

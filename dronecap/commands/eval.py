@@ -8,8 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dronecap.stage import setting
-from dronecap.stage_common import ProgressSettings, TorchSettings
+from dronecap.settings import ProgressSettings, TorchSettings, setting
 
 
 @dataclass(kw_only=True)

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dronecap.stage import setting
-from dronecap.stage_common import TorchSettings
+from dronecap.settings import TorchSettings, setting
 
 
 @dataclass(kw_only=True)

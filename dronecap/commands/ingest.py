@@ -23,8 +23,8 @@ from typing import Any
 
 from dronecap.capture.framing import parse_size
 from dronecap.capture.selection import SelectionParams
-from dronecap.stage import Numbers, Size, flatten, numbers, setting
-from dronecap.stage import Settings as Base
+from dronecap.settings import Numbers, Size, flatten, numbers, setting
+from dronecap.settings import Settings as Base
 
 
 def _size(text: str) -> Size:

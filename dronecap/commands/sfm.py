@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from dronecap.settings import Settings as Base
+from dronecap.settings import flatten, setting
 from dronecap.sfm.options import SfmOptions
-from dronecap.stage import Settings as Base
-from dronecap.stage import flatten, setting
 
 # The SfmOptions fields offered as options, with their help (the others keep their defaults).
 OPTION_HELP = {

@@ -18,8 +18,7 @@ from typing import Any
 
 from dronecap.nerf.backend import BACKENDS
 from dronecap.nerf.config import DATA_FIELDS, DEFAULT_PRESET, PRESETS, TrainConfig, parse_field
-from dronecap.stage import flatten, setting
-from dronecap.stage_common import ProgressSettings, TorchSettings
+from dronecap.settings import ProgressSettings, TorchSettings, flatten, setting
 
 CONFIG_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.name not in DATA_FIELDS)
 
