@@ -118,6 +118,18 @@ def flatten(
     return field(default_factory=dict, metadata={KEY: Meta("", group=group, flat=flat)})
 
 
+def input_setting(what: str, default: str) -> Any:
+    """A stage's optional positional input: ``what`` it reads, ``default`` when not given (a
+    conventional name in the workspace)."""
+    return setting(None, positional=True, help=f"{what} (default: {default})")
+
+
+def output_setting(what: str, default: str) -> Any:
+    """A stage's ``-o``/``--output``: ``what`` it writes, ``default`` when not given (a
+    conventional name in the workspace or the run folder)."""
+    return setting(None, short="-o", help=f"{what} (default: {default})")
+
+
 class Numbers(tuple):
     """Numbers given as one comma-separated value (``--noise 3,0.3``) and shown the same way,
     so :func:`dronecap.settings_cli.command_line` gives back what was typed."""
