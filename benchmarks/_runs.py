@@ -1,6 +1,7 @@
-"""What the training benchmarks (train_accuracy.py, time_to_quality.py) share: their command
-line, the lego scene, one JSON file per run, the final record of a trained model, GAP9 memory
-and the table of runs that stopped early."""
+"""What the benchmarks share. The training benchmarks (train_accuracy.py, time_to_quality.py):
+their command line, the lego scene, one JSON file per run, the final record of a trained model,
+GAP9 memory and the table of runs that stopped early. Every benchmark: printing and writing its
+results page, a median wall time, the pixel maps that show an image through a lens."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ import argparse
 import dataclasses
 import json
 import os
+import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -124,3 +127,33 @@ def stopped_table(runs: list[dict[str, Any]], intro: str, seconds: str) -> list[
         c = r["curve"][-1]
         lines.append(f"| {r['name']} | {c['step']} | {c['seconds']:.0f} | {c['psnr']:.2f} |")
     return lines
+
+
+def write_page(lines: list[str], path: Path) -> str:
+    """Print a results page (its markdown ``lines``) and write it to ``path``; the text."""
+    text = "\n".join(lines) + "\n"
+    print(text)
+    path.write_text(text)
+    return text
+
+
+def median_seconds(fn: Callable[[], object], repeat: int) -> float:
+    """Median wall time of ``fn()`` over ``repeat`` calls, in seconds."""
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def lens_maps(pinhole: Any, distortion: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps (x, y), float32 [H, W], that turn an image of camera ``pinhole`` into
+    what the same camera with OpenCV lens ``distortion`` sees."""
+    lens = dataclasses.replace(pinhole, model="OPENCV", distortion=distortion)
+    v, u = np.mgrid[0 : pinhole.height, 0 : pinhole.width]
+    xy = lens.undistort_points(np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1))
+    shape = (pinhole.height, pinhole.width)
+    map_x = (pinhole.fx * xy[:, 0] + pinhole.cx - 0.5).reshape(shape).astype(np.float32)
+    map_y = (pinhole.fy * xy[:, 1] + pinhole.cy - 0.5).reshape(shape).astype(np.float32)
+    return map_x, map_y

@@ -10,15 +10,14 @@ from __future__ import annotations
 
 import json
 import shutil
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import cv2
 import h5py
 import numpy as np
+from _runs import median_seconds
 
 from dronecap.datasets.blender import import_blender
 from dronecap.datasets.bounds import carve_aabb, lookat_cube
@@ -30,16 +29,6 @@ REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
 OUT = REPO / "benchmarks" / "results" / "datasets.md"
 REPEAT = 3
-
-
-def median_time(fn, repeat: int = REPEAT) -> float:
-    """Median wall time of ``fn()`` in seconds."""
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def upsampled_scene(root: Path, size: int) -> Path:
@@ -105,13 +94,15 @@ def main() -> int:
         tmp = Path(tmp_dir)
         h5 = tmp / "lego.h5"
         for color in ("rgb", "gray"):
-            t = median_time(lambda c=color: import_blender(LEGO, h5, 160, c, progress=False))
+            t = median_seconds(
+                lambda c=color: import_blender(LEGO, h5, 160, c, progress=False), REPEAT
+            )
             mb = h5.stat().st_size / 1e6
             rows.append(
                 f"| import lego 160 px {color} (400 views) | {t:.2f} s | file {mb:.1f} MB |"
             )
         big = upsampled_scene(tmp / "lego800", 800)
-        t = median_time(lambda: import_blender(big, tmp / "b.h5", 160, progress=False), 1)
+        t = median_seconds(lambda: import_blender(big, tmp / "b.h5", 160, progress=False), 1)
         rows.append(
             f"| import 100 views 800 px -> 160 px | {t:.2f} s | {1e3 * t / 100:.1f} ms/view |"
         )
@@ -131,7 +122,7 @@ def main() -> int:
             def carve(g=grid, out=box):
                 out[0] = carve_aabb(ds.alpha[train], ds.poses[train], ds.intrinsics, grid=g)
 
-            t = median_time(carve)
+            t = median_seconds(carve, REPEAT)
             vol = float(np.prod(box[0][1] - box[0][0]))
             rows.append(
                 f"| carve AABB, grid {grid} | {t:.2f} s | volume {vol:.2f} "
@@ -143,16 +134,16 @@ def main() -> int:
         idx = rng.integers(0, ds.n, 2000)
         with h5py.File(h5) as f:
             images = f["images"]
-            t = median_time(lambda: [images[int(i)] for i in idx])
+            t = median_seconds(lambda: [images[int(i)] for i in idx], REPEAT)
         rows.append(f"| random read of one frame (lzf chunk) | {1e3 * t / len(idx):.3f} ms | |")
         for scheme in ("iid", "sector"):
-            t = median_time(lambda s=scheme: shard_dataset(h5, tmp / s, 4, s))
+            t = median_seconds(lambda s=scheme: shard_dataset(h5, tmp / s, 4, s), REPEAT)
             summary = json.loads((tmp / scheme / "summary.json").read_text())
             spans = [s.get("span_deg") for s in summary["shards"]]
             extra = f"sector spans {spans} deg" if scheme == "sector" else "4 x 25 train + 200 test"
             rows.append(f"| shard lego 4 clients {scheme} | {t:.2f} s | {extra} |")
         plot_sectors(ds, json.loads((tmp / "sector" / "summary.json").read_text()))
-        t = median_time(lambda: export_transforms(h5, tmp / "export"))
+        t = median_seconds(lambda: export_transforms(h5, tmp / "export"), REPEAT)
         rows.append(f"| export-transforms lego (400 PNGs) | {t:.2f} s | |")
 
     table = "\n".join(["| step | time | notes |", "|---|---|---|", *rows])

@@ -50,6 +50,18 @@ RESULTS = REPO / "benchmarks" / "results"
 MACHINE = dict(grid_res=64, grid_warmup=16, n_max=512)
 
 
+# The options that are FedSettings fields of the same name, passed on as given.
+AS_GIVEN = (
+    "pretrain",
+    "local_steps",
+    "rounds",
+    "compress",
+    "server_lr",
+    "server_momentum",
+    "eval_views",
+)
+
+
 def main() -> None:
     """Run the benchmark; see the module docstring."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
@@ -112,14 +124,8 @@ def main() -> None:
         s = fed.FedSettings(
             shards=[str(shards / f"client_{k}.h5") for k in range(4)],
             cfg=cfg,
-            pretrain=a.pretrain,
-            local_steps=a.local_steps,
-            rounds=a.rounds,
             transfer_dtype=dtype,
-            compress=a.compress,
-            server_lr=a.server_lr,
-            server_momentum=a.server_momentum,
-            eval_views=a.eval_views,
+            **{name: getattr(a, name) for name in AS_GIVEN},
         )
         run.mkdir(parents=True, exist_ok=True)
         fed.save_settings(run, s)

@@ -140,39 +140,27 @@ def measure(args: argparse.Namespace) -> list[tuple[str, Timing]]:
         rows.append((name, ms))
         print(f"{torch.get_num_threads()} thr  {name:70s} {ms} ms", flush=True)
 
+    def encoding(grid: HashGrid, tile: int, what: str, mode: str = "") -> None:
+        points = f"{N} points" if tile == N else f"8 tiles of {TILE}"
+        add(f"encoding fwd+bwd, {points}, {what}", encoding_ms(grid, x, args.repeats, tile, mode))
+
+    def step_proxy(grid: HashGrid, what: str, fused_adam: bool) -> None:
+        add(f"step proxy, {what}", step_proxy_ms(grid, x, args.repeats, fused_adam=fused_adam))
+
     backends = ["torch", "cpp"] + ([] if args.skip_compile else ["compile"])
     for backend in backends:
         grid = HashGrid(**CONFIG, backend=backend)
-        add(f"encoding fwd+bwd, {N} points, {backend}", encoding_ms(grid, x, args.repeats, N))
-        add(
-            f"encoding fwd+bwd, 8 tiles of {TILE}, {backend}",
-            encoding_ms(grid, x, args.repeats, TILE),
-        )
-        add(
-            f"step proxy, {backend}, fused Adam",
-            step_proxy_ms(grid, x, args.repeats, fused_adam=True),
-        )
+        encoding(grid, N, backend)
+        encoding(grid, TILE, backend)
+        step_proxy(grid, f"{backend}, fused Adam", fused_adam=True)
         if backend == "cpp":
             inplace = HashGrid(**CONFIG, backend=backend, inplace_grad=True)
-            add(
-                f"encoding fwd+bwd, 8 tiles of {TILE}, cpp inplace_grad",
-                encoding_ms(inplace, x, args.repeats, TILE),
-            )
-            add(
-                f"step proxy, {backend}, foreach Adam (torch default)",
-                step_proxy_ms(grid, x, args.repeats, fused_adam=False),
-            )
+            encoding(inplace, TILE, "cpp inplace_grad")
+            step_proxy(grid, f"{backend}, foreach Adam (torch default)", fused_adam=False)
             for mode in ("level", "atomic", "partial"):
-                add(
-                    f"encoding fwd+bwd, {N} points, cpp backward_mode={mode}",
-                    encoding_ms(grid, x, args.repeats, N, mode),
-                )
+                encoding(grid, N, f"cpp backward_mode={mode}", mode)
     for dtype in (torch.float16, torch.bfloat16):
-        grid = HashGrid(**CONFIG, backend="cpp", dtype=dtype)
-        add(
-            f"encoding fwd+bwd, {N} points, cpp, {dtype} storage",
-            encoding_ms(grid, x, args.repeats, N),
-        )
+        encoding(HashGrid(**CONFIG, backend="cpp", dtype=dtype), N, f"cpp, {dtype} storage")
     grid = HashGrid(**CONFIG, backend="cpp")
     big = torch.rand(1 << 16, 3)
     with torch.no_grad():

@@ -26,7 +26,6 @@ workspace, ``--himax-work``, must hold ``dataset.h5`` from ``ingest``/``sfm``/``
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import subprocess
@@ -34,6 +33,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from _runs import lens_maps
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
@@ -79,11 +79,7 @@ def object_capture(out: Path) -> Path:
     poses[:, :3, 3] -= lookat_point(poses)
     poses[:, :3, 3] *= 4.0 / np.linalg.norm(poses[:, :3, 3], axis=1).mean()
     pin = ds.intrinsics
-    lens = dataclasses.replace(pin, model="OPENCV", distortion=LENS)
-    v, u = np.mgrid[0 : pin.height, 0 : pin.width]
-    xy = lens.undistort_points(np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1))
-    map_x = (pin.fx * xy[:, 0] + pin.cx - 0.5).reshape(pin.height, pin.width).astype(np.float32)
-    map_y = (pin.fy * xy[:, 1] + pin.cy - 0.5).reshape(pin.height, pin.width).astype(np.float32)
+    map_x, map_y = lens_maps(pin, LENS)
     (out / "images").mkdir(parents=True, exist_ok=True)
     frames = []
     for j, i in enumerate(keep):

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from _runs import lens_maps
 
 from dronecap.camera import Camera
 from dronecap.cli import main as dronecap
@@ -93,11 +94,7 @@ def distorted_lego(work: Path, n_test: int) -> Path:
     the first ``n_test`` of lego's test split."""
     ds = open_dataset(import_blender(LEGO, work / "lego.h5", progress=False))
     pin = ds.intrinsics
-    lens = dataclasses.replace(pin, model="OPENCV", distortion=LENS)
-    v, u = np.mgrid[0 : pin.height, 0 : pin.width]
-    xy = lens.undistort_points(np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1))
-    map_x = (pin.fx * xy[:, 0] + pin.cx - 0.5).reshape(pin.height, pin.width).astype(np.float32)
-    map_y = (pin.fy * xy[:, 1] + pin.cy - 0.5).reshape(pin.height, pin.width).astype(np.float32)
+    map_x, map_y = lens_maps(pin, LENS)
     keep = np.concatenate([ds.indices("train"), ds.indices("test")[:n_test]])
     (work / "ns" / "images").mkdir(parents=True)
     frames = []

@@ -18,11 +18,11 @@ from __future__ import annotations
 import argparse
 import os
 import signal
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
+
+from _runs import median_seconds
 
 from dronecap.datasets.blender import import_blender
 from dronecap.datasets.format import Dataset, DatasetError, open_dataset, write_dataset
@@ -77,15 +77,6 @@ def flip_every_byte(path: Path, scratch: Path, first: int | None) -> dict[str, i
     return counts
 
 
-def timed(fn, repeat: int = REPEAT) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 def main() -> None:
     cli = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     cli.add_argument("--bytes", type=int, help="flip only the first BYTES bytes (default: all)")
@@ -105,9 +96,9 @@ def main() -> None:
         ds = open_dataset(lego)
         perf = []
         for name, p in (("v2", lego), ("v1", lego1)):
-            read = timed(lambda p=p: open_dataset(p))
+            read = median_seconds(lambda p=p: open_dataset(p), REPEAT)
             perf.append((name, p.stat().st_size / 1e6, read))
-        write = timed(lambda: write_dataset(tmp / "w.h5", ds))
+        write = median_seconds(lambda: write_dataset(tmp / "w.h5", ds), REPEAT)
     load = os.getloadavg()
     scanned = "every byte" if first is None else f"each of the first {first} bytes"
     lines = [

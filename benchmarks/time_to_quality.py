@@ -160,9 +160,7 @@ def report(args: argparse.Namespace) -> None:
         "20 views, at the last check):",
         "train CPU s",
     )
-    text = "\n".join(lines) + "\n"
-    print(text)
-    (shared.RESULTS / "time_to_quality.md").write_text(text)
+    shared.write_page(lines, shared.RESULTS / "time_to_quality.md")
     scenes = sorted({r["scene"] for r in runs})
     fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.2), squeeze=False)
     for ax, scene in zip(axes[0], scenes, strict=True):
@@ -286,9 +284,7 @@ def _compare_report(args: argparse.Namespace, variants: dict, rows: dict) -> Non
         ax.set_ylabel("test PSNR [dB]")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    text = "\n".join(lines) + "\n"
-    print(text)
-    (shared.RESULTS / "time_to_quality_compare.md").write_text(text)
+    shared.write_page(lines, shared.RESULTS / "time_to_quality_compare.md")
     fig.tight_layout()
     fig.savefig(shared.RESULTS / "time_to_quality_compare.png", dpi=110)
 

@@ -115,9 +115,7 @@ def report(args: argparse.Namespace) -> None:
         "(20 views) at the last evaluated step:",
         "train s",
     )
-    text = "\n".join(lines) + "\n"
-    print(text)
-    (shared.RESULTS / "train_accuracy.md").write_text(text)
+    shared.write_page(lines, shared.RESULTS / "train_accuracy.md")
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
     for r in unfinished:
         psnr = [c["psnr"] for c in r["curve"]]

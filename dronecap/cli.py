@@ -1,12 +1,13 @@
-"""The ``dronecap`` command line, generated from the stage registry (:mod:`dronecap.stages`).
+"""The ``dronecap`` command line, generated from the stage registry (:mod:`dronecap.registry`).
 
-Each command's options come from its ``Settings`` dataclass (:func:`dronecap.stage.add_options`);
-the parsed options become a ``Settings`` that :func:`call` hands to the command's ``run``, the same
-call the pipeline runner makes. Command modules import only the standard library at module
-level, so ``dronecap --help`` stays fast; torch, pycolmap, open3d and Flower are imported inside
-``run``. An :class:`InputError` raised anywhere becomes one line on stderr and exit code 1, and so
-does an OSError of the storage (full disk, read-only, a folder in the way:
-``dronecap.files.storage_error``); Ctrl-C exits with 130.
+Each command's options come from its ``Settings`` dataclass
+(:func:`dronecap.settings_cli.add_options`); the parsed options become a ``Settings`` that
+:func:`call` hands to the command's ``run``, the same call the pipeline runner makes. Command
+modules import only the standard library at module level, so ``dronecap --help`` stays fast;
+torch, pycolmap, open3d and Flower are imported inside ``run``. An :class:`InputError` raised
+anywhere becomes one line on stderr and exit code 1, and so does an OSError of the storage
+(full disk, read-only, a folder in the way: ``dronecap.files.storage_error``); Ctrl-C exits
+with 130.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import sys
 from collections.abc import Callable
 from typing import Any, NoReturn
 
-from dronecap.stages import STAGES, Stage
+from dronecap.registry import STAGES, Stage
 
 
 class _HelpWithDefaults(argparse.HelpFormatter):
@@ -75,7 +76,7 @@ def _top_parser() -> argparse.ArgumentParser:
 
 def build_parser(name: str) -> tuple[argparse.ArgumentParser, Stage]:
     """The full parser of one command and its registry entry (imports its module)."""
-    from dronecap.stage import add_options
+    from dronecap.settings_cli import add_options
 
     stage = STAGES[name]
     p = _OneLineParser(
@@ -97,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or argv[0] not in STAGES:
         _top_parser().parse_args(argv or ["--help"])
         return 2
-    from dronecap.stage import from_namespace
+    from dronecap.settings_cli import from_namespace
 
     parser, stage = build_parser(argv[0])
     args = parser.parse_intermixed_args(argv[1:])
@@ -109,7 +110,7 @@ def call(stage: Stage, settings_of: Callable[[type], Any]) -> int:
     exit code, with every user-facing failure as one line on stderr."""
     from dronecap.errors import InputError
     from dronecap.files import check_command_paths, output_locks
-    from dronecap.stage import check
+    from dronecap.settings_cli import check
 
     try:
         settings_cls, run = stage.load()

@@ -1,6 +1,6 @@
 """The key figure of each stage, read from the files the stage wrote (for summaries/reports).
 
-The registry (:mod:`dronecap.stages`) names each stage's reader. Each reader is forgiving: a
+The registry (:mod:`dronecap.registry`) names each stage's reader. Each reader is forgiving: a
 stage whose output lacks the expected file yields "" rather than an
 error, since the figure is a convenience, not part of the stage's contract.
 """

@@ -1,7 +1,7 @@
 """The pictures of each stage in a pipeline report, drawn from the files the stage wrote.
 
 Each picture is ``(stage_dir, params, out) -> Path | None`` (None: nothing to draw) and is named
-in the stage's registry entry (:attr:`dronecap.stages.Stage.pictures`), so a stage's pictures
+in the stage's registry entry (:attr:`dronecap.registry.Stage.pictures`), so a stage's pictures
 are declared once: the ingest contact sheet of kept frames, the SfM trajectory (against the
 ground truth when the stage was given one), the training curve, the labelled
 truth | render | error comparison and the fly-through of the test views in flight order

@@ -1,7 +1,7 @@
 """The pipeline runner: run a validated pipeline's stages in order, with caching.
 
 Each stage runs the ``dronecap`` command it names, in-process: its parameters become the
-command's settings (:func:`dronecap.stage.from_params`) with the workspace
+command's settings (:func:`dronecap.settings_cli.from_params`) with the workspace
 ``runs/<pipeline>/<stage>``, so that its outputs land in its own folder, and the command's
 ``run`` is called with them (:func:`dronecap.cli.call`). Beside them the runner
 keeps a stamp, ``.dronecap-stage.json``: the cache key (a hash of the parameters and of the
@@ -30,7 +30,7 @@ from typing import Any
 from dronecap.errors import InputError
 from dronecap.files import atomic_output, output_lock, sha256_file
 from dronecap.pipeline_spec import Pipeline, PipelineStage, substitute
-from dronecap.stages import STAGES
+from dronecap.registry import STAGES
 
 STAMP = ".dronecap-stage.json"
 # Parameters that change how a stage computes, not what it computes: never part of the cache key.
@@ -167,7 +167,7 @@ class Runner:
     def _run(self, dry_run: bool) -> list[StageResult]:
         from dronecap.cli import call
         from dronecap.figures import key_figure
-        from dronecap.stage import command_line, from_params
+        from dronecap.settings_cli import command_line, from_params
 
         results: list[StageResult] = []
         upstream_runs: set[str] = set()

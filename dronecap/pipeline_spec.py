@@ -2,7 +2,7 @@
 
 A pipeline is an ordered mapping of stages. A stage names a ``dronecap`` command (the stage id
 by default) and its parameters, with exactly the names of that command's CLI options (dashes or
-underscores), checked against the command's settings dataclass (:mod:`dronecap.stage`): name,
+underscores), checked against the command's settings dataclass (:mod:`dronecap.settings`): name,
 type and choices. String values may use ``${var}`` for a pipeline variable and ``${stage}`` for the
 output folder of an earlier stage, which also makes that stage an upstream dependency::
 
@@ -26,8 +26,8 @@ from typing import Any
 import yaml
 
 from dronecap.errors import InputError
-from dronecap.stage import missing_params, param_value, params_table
-from dronecap.stages import STAGES
+from dronecap.registry import STAGES
+from dronecap.settings_cli import missing_params, param_value, params_table
 
 REF = re.compile(r"\$\{([A-Za-z0-9_.-]+)\}")
 # Pipeline and stage names become folders under the runs folder: letters, digits, '_' and '-'
@@ -77,7 +77,7 @@ _LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _con
 @dataclass
 class PipelineStage:
     """One use of a stage in a pipeline, after validation: its id, the command (a
-    :data:`dronecap.stages.STAGES` entry, :class:`dronecap.stages.Stage`) and its parameters."""
+    :data:`dronecap.stages.STAGES` entry, :class:`dronecap.registry.Stage`) and its parameters."""
 
     id: str
     command: str

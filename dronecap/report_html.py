@@ -1,7 +1,7 @@
 """The pictures of a pipeline run and its self-contained ``report.html``.
 
 :func:`stage_pictures` makes and lists the pictures the registry declares for each stage
-(:attr:`dronecap.stages.Stage.pictures`, drawn by :mod:`dronecap.pictures`); :func:`write_html`
+(:attr:`dronecap.registry.Stage.pictures`, drawn by :mod:`dronecap.pictures`); :func:`write_html`
 embeds them all in one HTML file (base64 images), so the report opens anywhere without the run
 folder.
 """
@@ -20,8 +20,8 @@ PICTURES = "pictures"  # folder of the generated pictures, inside the pipeline's
 
 def stage_pictures(command: str, stage_dir: Path, params: dict[str, Any], pics: Path) -> list:
     """Make (under ``pics``) the pictures the registry declares for ``command``
-    (:attr:`dronecap.stages.Stage.pictures`) from one stage's folder; their paths (those made)."""
-    from dronecap.stages import STAGES
+    (:attr:`dronecap.registry.Stage.pictures`) from one stage's folder; their paths (those made)."""
+    from dronecap.registry import STAGES
 
     made = [
         picture(stage_dir, params, pics / f"{stage_dir.name}_{name}")

@@ -109,16 +109,26 @@ def find_boards(
                 "must come from the same camera mode",
                 name,
             )
-        det = board.detect(gray)
-        if det is None:
-            rejected[name] = "board not found"
-        elif det.n < board.min_points:
-            rejected[name] = f"too few corners ({det.n} of {board.points}, need {board.min_points})"
-        else:
-            views.append(View(name, det))
+        find_view(board, name, gray, views, rejected)
     if size is None:
         raise InputError("no calibration images given")
     return views, rejected, size
+
+
+def find_view(
+    board: Board, name: str, gray: np.ndarray, views: list[View], rejected: dict[str, str]
+) -> bool:
+    """Detect ``board`` in one uint8 [H, W] gray image: True when it is a view (appended to
+    ``views``), False when it is not (``rejected[name]`` says why)."""
+    det = board.detect(gray)
+    if det is None:
+        rejected[name] = "board not found"
+    elif det.n < board.min_points:
+        rejected[name] = f"too few corners ({det.n} of {board.points}, need {board.min_points})"
+    else:
+        views.append(View(name, det))
+        return True
+    return False
 
 
 def calibrate(

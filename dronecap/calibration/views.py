@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dronecap.calibration.calibrate import View
+from dronecap.calibration.calibrate import View, find_view
 from dronecap.calibration.targets import Board
 from dronecap.errors import InputError
 
@@ -92,13 +92,7 @@ def pick_video_views(
 
     def consider(s: float, label: str, gray: np.ndarray) -> None:
         """Find the board in a candidate (only candidates are kept: no frames in memory)."""
-        det = board.detect(gray)
-        if det is None:
-            rejected[label] = "board not found"
-        elif det.n < board.min_points:
-            rejected[label] = f"too few corners ({det.n} of {board.points})"
-        else:
-            views.append(View(label, det))
+        if find_view(board, label, gray, views, rejected):
             scores[label] = s
 
     best: tuple[float, str, np.ndarray] | None = None  # sharpest frame of the current stretch

@@ -16,8 +16,8 @@ from dronecap import workspace
 from dronecap.calibration.calibrate import MAX_VIEW_ERROR_PX, MODELS
 from dronecap.calibration.targets import PATTERNS, SUBPIX_WINDOW
 from dronecap.calibration.views import MAX_VIEWS
-from dronecap.stage import Settings as Base
-from dronecap.stage import setting
+from dronecap.settings import Settings as Base
+from dronecap.settings import output_setting, setting
 
 OUTPUT = workspace.CALIBRATION  # default output, in the workspace
 
@@ -48,10 +48,8 @@ class Settings(Base):
     max_view_error: float = setting(
         MAX_VIEW_ERROR_PX, help="reject views whose RMS error exceeds this (px) and 3x the median"
     )
-    output: str | None = setting(
-        None,
-        short="-o",
-        help=f"calibration JSON, or .yml/.xml for OpenCV's format (default: WORKDIR/{OUTPUT})",
+    output: str | None = output_setting(
+        "calibration JSON, or .yml/.xml for OpenCV's format", f"WORKDIR/{OUTPUT}"
     )
     plot: str | None = setting(
         None, help="also write a PNG of the corner coverage and per-view errors"

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dronecap.gap9.platform import parse_bytes
-from dronecap.stage import Settings as Base
-from dronecap.stage import setting
+from dronecap.settings import Settings as Base
+from dronecap.settings import setting
 
 
 def byte_size(text: str) -> int:

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dronecap.stage import setting
-from dronecap.stage_common import TorchSettings
+from dronecap.settings import TorchSettings, output_setting, setting
 
 
 @dataclass(kw_only=True)
@@ -15,9 +14,7 @@ class Settings(TorchSettings):
     run_dir: str = setting(
         positional=True, help="training run folder (holds checkpoint.pt and run.json)"
     )
-    output: str | None = setting(
-        None, short="-o", help="folder to write (default: RUN_DIR/geometry)"
-    )
+    output: str | None = output_setting("folder to write", "RUN_DIR/geometry")
     dataset: str | None = setting(None, help="dataset of the run (default: the one run.json names)")
     resolution: int = setting(
         128, minimum=8, maximum=1024, help="density grid points per axis over the AABB"

@@ -4,20 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dronecap.stage import Settings as Base
-from dronecap.stage import setting
+from dronecap.settings import Settings as Base
+from dronecap.settings import input_setting, output_setting, setting
 
 
 @dataclass(kw_only=True)
 class Settings(Base):
     """Options of ``dronecap export-transforms``."""
 
-    input: str | None = setting(
-        None, positional=True, help="dataset to export (default: WORKDIR/dataset.h5)"
-    )
-    output: str | None = setting(
-        None, short="-o", help="folder to write (default: WORKDIR/transforms)"
-    )
+    input: str | None = input_setting("dataset to export", "WORKDIR/dataset.h5")
+    output: str | None = output_setting("folder to write", "WORKDIR/transforms")
     sparse_model: str | None = setting(
         None,
         help="the COLMAP model the poses came from, for the coloured sparse cloud and the "

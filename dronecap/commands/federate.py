@@ -7,8 +7,8 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from dronecap.stage import Settings as Base
-from dronecap.stage import setting
+from dronecap.settings import Settings as Base
+from dronecap.settings import setting
 
 
 def _client_or_all(text: str) -> int:

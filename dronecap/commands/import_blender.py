@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dronecap.stage import Settings as Base
-from dronecap.stage import setting
+from dronecap.settings import Settings as Base
+from dronecap.settings import output_setting, setting
 
 
 @dataclass(kw_only=True)
@@ -15,9 +15,7 @@ class Settings(Base):
     scene_dir: str = setting(
         positional=True, help="scene folder holding transforms_{train,val,test}.json"
     )
-    output: str | None = setting(
-        None, short="-o", help="dataset to write (default: WORKDIR/dataset.h5)"
-    )
+    output: str | None = output_setting("dataset to write", "WORKDIR/dataset.h5")
     resolution: int = setting(160, help="stored image width in pixels (default 160)")
     color: str = setting("rgb", choices=("rgb", "gray"), help="stored colour (default rgb)")
     allow_outside: bool = setting(

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from dronecap.commands.import_transforms import ImportOptions
-from dronecap.stage import setting
+from dronecap.settings import setting
 
 
 @dataclass(kw_only=True)

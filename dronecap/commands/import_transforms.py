@@ -4,17 +4,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dronecap.stage import Settings as Base
-from dronecap.stage import setting
+from dronecap.settings import Settings as Base
+from dronecap.settings import output_setting, setting
 
 
 @dataclass(kw_only=True)
 class ImportOptions(Base):
     """The options every scene importer shares: output, stored width, colour."""
 
-    output: str | None = setting(
-        None, short="-o", help="dataset to write (default: WORKDIR/dataset.h5)"
-    )
+    output: str | None = output_setting("dataset to write", "WORKDIR/dataset.h5")
     size: int = setting(160, minimum=8, help="stored image width in pixels, >= 8")
     color: str = setting(
         "auto",

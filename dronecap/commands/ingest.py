@@ -14,6 +14,7 @@ re-selected frames when all of them are stored.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -23,8 +24,11 @@ from typing import Any
 
 from dronecap.capture.framing import parse_size
 from dronecap.capture.selection import SelectionParams
-from dronecap.stage import Numbers, Size, flatten, numbers, setting
-from dronecap.stage import Settings as Base
+from dronecap.settings import Numbers, Size, flatten, numbers, output_setting, setting
+from dronecap.settings import Settings as Base
+
+# The settings that are IngestParams fields of the same name, passed on as given.
+AS_GIVEN = ("crop", "fps", "allow_truncated", "skip_unreadable", "telemetry", "columns")
 
 
 def _size(text: str) -> Size:
@@ -42,9 +46,7 @@ class Settings(Base):
         help="video file or folder of images; several (one per drone, in order) or a swarm "
         "folder (one video or capture folder per drone) for a swarm",
     )
-    output: str | None = setting(
-        None, short="-o", help="output frames file (default: WORKDIR/frames.h5)"
-    )
+    output: str | None = output_setting("output frames file", "WORKDIR/frames.h5")
     size: Size = setting(
         Size((160, 160)), parse=_size, late=True, help="output size, '160' or 'WxH' (default: 160)"
     )
@@ -141,22 +143,14 @@ def _ingest(args: Settings, selection: object) -> int:
         raise InputError(
             "--telemetry names one CSV: with several drones each capture folder's own is used"
         )
-    params = [
-        IngestParams(
-            size=tuple(args.size),
-            crop=args.crop,
-            fps=args.fps,
-            intrinsics=calibration,
-            allow_truncated=args.allow_truncated,
-            skip_unreadable=args.skip_unreadable,
-            telemetry=args.telemetry,
-            columns=args.columns,
-            camera_offset=None if offset is None else tuple(offset),
-            bayer=args.bayer.lower() if args.bayer in ("AUTO", "NONE") else args.bayer,
-            selection=selection,  # type: ignore[arg-type]
-        )
-        for calibration in calibrations
-    ]
+    common = IngestParams(
+        size=tuple(args.size),
+        camera_offset=None if offset is None else tuple(offset),
+        bayer=args.bayer.lower() if args.bayer in ("AUTO", "NONE") else args.bayer,
+        selection=selection,  # type: ignore[arg-type]
+        **{name: getattr(args, name) for name in AS_GIVEN},
+    )
+    params = [dataclasses.replace(common, intrinsics=c) for c in calibrations]
     out = workspace.resolve(args.workdir, args.output, workspace.FRAMES)
     results = [ingest(s, p) for s, p in zip(sources, params, strict=True)]
     write_dataset(out, frames_dataset(results, sources, params))

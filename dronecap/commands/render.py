@@ -7,17 +7,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dronecap.stage import setting
-from dronecap.stage_common import ProgressSettings, TorchSettings
+from dronecap.settings import ProgressSettings, TorchSettings, input_setting, setting
 
 
 @dataclass(kw_only=True)
 class Settings(TorchSettings, ProgressSettings):
     """Options of ``dronecap render``."""
 
-    run_dir: str | None = setting(
-        None, positional=True, help="run dir (default: WORKDIR/runs/train)"
-    )
+    run_dir: str | None = input_setting("run dir", "WORKDIR/runs/train")
     orbit: int | None = setting(
         None, minimum=1, metavar="N", help="render N views on a circle instead"
     )

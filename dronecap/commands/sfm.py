@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from dronecap.settings import Settings as Base
+from dronecap.settings import flatten, output_setting, setting
 from dronecap.sfm.options import SfmOptions
-from dronecap.stage import Settings as Base
-from dronecap.stage import flatten, setting
 
 # The SfmOptions fields offered as options, with their help (the others keep their defaults).
 OPTION_HELP = {
@@ -45,9 +45,7 @@ class Settings(Base):
     """Options of ``dronecap sfm`` (COLMAP's are SfmOptions fields, defaults from there)."""
 
     frames: str | None = setting(None, help="input frames.h5 (default: WORKDIR/frames.h5)")
-    output: str | None = setting(
-        None, short="-o", help="output posed.h5 (default: WORKDIR/posed.h5)"
-    )
+    output: str | None = output_setting("output posed.h5", "WORKDIR/posed.h5")
     sfm_dir: str | None = setting(None, help="model, PLY and report folder (default: WORKDIR/sfm)")
     gt: str | None = setting(
         None,

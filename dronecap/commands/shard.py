@@ -4,18 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dronecap.stage import Settings as Base
-from dronecap.stage import setting
+from dronecap.settings import Settings as Base
+from dronecap.settings import input_setting, output_setting, setting
 
 
 @dataclass(kw_only=True)
 class Settings(Base):
     """Options of ``dronecap shard``."""
 
-    input: str | None = setting(
-        None, positional=True, help="dataset to shard (default: WORKDIR/dataset.h5)"
-    )
-    output: str | None = setting(None, short="-o", help="folder to write (default: WORKDIR/shards)")
+    input: str | None = input_setting("dataset to shard", "WORKDIR/dataset.h5")
+    output: str | None = output_setting("folder to write", "WORKDIR/shards")
     clients: int = setting(
         4, minimum=1, help="number of drones K (default 4; --scheme drone: one per drone)"
     )

@@ -14,9 +14,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from dronecap.settings import Numbers, Size, numbers, setting
+from dronecap.settings import Settings as Base
 from dronecap.simulator.sensor import DEFECT_DEFAULTS
-from dronecap.stage import Numbers, Size, numbers, setting
-from dronecap.stage import Settings as Base
 
 SCENES = ("corridor", "orbit")
 CODECS = ("ffv1", "mjpg", "mp4v")

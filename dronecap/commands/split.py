@@ -4,20 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dronecap.stage import Settings as Base
-from dronecap.stage import setting
+from dronecap.settings import Settings as Base
+from dronecap.settings import input_setting, output_setting, setting
 
 
 @dataclass(kw_only=True)
 class Settings(Base):
     """Options of ``dronecap split``."""
 
-    input: str | None = setting(
-        None, positional=True, help="posed flight (default: WORKDIR/posed.h5)"
-    )
-    output: str | None = setting(
-        None, short="-o", help="dataset to write (default: WORKDIR/dataset.h5)"
-    )
+    input: str | None = input_setting("posed flight", "WORKDIR/posed.h5")
+    output: str | None = output_setting("dataset to write", "WORKDIR/dataset.h5")
     every: int = setting(8, minimum=2, help="hold out one frame in EVERY for test (default 8)")
 
 

@@ -18,8 +18,7 @@ from typing import Any
 
 from dronecap.nerf.backend import BACKENDS
 from dronecap.nerf.config import DATA_FIELDS, DEFAULT_PRESET, PRESETS, TrainConfig, parse_field
-from dronecap.stage import flatten, setting
-from dronecap.stage_common import ProgressSettings, TorchSettings
+from dronecap.settings import ProgressSettings, TorchSettings, flatten, input_setting, setting
 
 CONFIG_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.name not in DATA_FIELDS)
 
@@ -28,9 +27,7 @@ CONFIG_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.name 
 class Settings(TorchSettings, ProgressSettings):
     """Options of ``dronecap train``."""
 
-    dataset: str | None = setting(
-        None, positional=True, help="dataset.h5 (default: WORKDIR/dataset.h5)"
-    )
+    dataset: str | None = input_setting("dataset.h5", "WORKDIR/dataset.h5")
     out: str | None = setting(None, help="run dir (default: WORKDIR/runs/train)")
     no_resume: bool = setting(False, help="start over even if a checkpoint exists")
     resume_from: str | None = setting(

@@ -23,7 +23,6 @@ from dronecap.datasets.import_scene import (
     check_options,
     imported_dataset,
     read_images,
-    resized_camera,
     scene_bounds,
 )
 from dronecap.datasets.safe_paths import inside_folder
@@ -95,12 +94,8 @@ def import_colmap(
     Args:
         model_dir: COLMAP model folder (cameras, images, points3D as .bin or .txt).
         images_dir: the folder the model's image names are relative to.
-        out_path: the ``.h5`` to write (atomically).
-        size: stored image width in pixels (height keeps the aspect ratio).
-        color: "auto" (gray when every image is gray), "rgb" or "gray".
-
-    Raises:
-        InputError: one line naming the file and what is wrong.
+        out_path, size, color, progress: as for every importer
+            (:mod:`dronecap.datasets.import_scene`).
     """
     from dronecap.datasets.colmap_model import model_arrays
     from dronecap.datasets.split import every_kth_split
@@ -131,7 +126,7 @@ def import_colmap(
     model_files = sorted(p for p in model_dir.iterdir() if p.is_file())
     ds = imported_dataset(
         imgs,
-        k0,
+        (table, index),  # COLMAP's several cameras: a camera per frame
         b,
         names,
         every_kth_split(np.arange(len(names))),
@@ -148,8 +143,6 @@ def import_colmap(
             "colmap_points": int(len(points)),
         },
     )
-    if len(table) > 1:  # COLMAP's several cameras: a camera per frame
-        ds.set_cameras([resized_camera(c, imgs.images) for c in table], index)
     return write_dataset(out_path, ds)
 
 

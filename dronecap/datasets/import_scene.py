@@ -1,6 +1,11 @@
-"""What the dataset importers share: reading and resizing posed images, and the scene bounds.
+"""What the dataset importers share: their options, reading and resizing posed images, and the
+scene bounds.
 
-Both ``import-transforms`` and ``import-colmap`` end here:
+Both ``import-transforms`` and ``import-colmap`` take, besides their source, ``out_path`` (the
+``.h5`` written, atomically), ``size`` (the stored image width in pixels; the height keeps the
+aspect ratio), ``color`` (``"auto"``, ``"rgb"`` or ``"gray"``, checked by
+:func:`check_options`) and ``progress`` (a progress bar while reading images), and raise
+:class:`InputError`, one line naming the file and what is wrong. Both end here:
 
 - images: read with OpenCV (8- or 16-bit, gray, RGB or RGBA), area-resized to the stored width
   (height keeps the aspect ratio; colour premultiplied by alpha while resizing), stored RGB or
@@ -253,7 +258,7 @@ def _inside_outer(
 
 def imported_dataset(
     imgs: Images,
-    source_camera: Intrinsics,
+    cameras: tuple[list[Intrinsics], np.ndarray],
     bounds: Bounds,
     names: list[str],
     split: np.ndarray,
@@ -266,7 +271,9 @@ def imported_dataset(
 
     Args:
         imgs: the images as stored, with the size of the files.
-        source_camera: the camera of the files (resized here with the images).
+        cameras: the distinct cameras of the files (resized here with the images) and each
+            image's index among them, int64 [N]; the first is the dataset's camera, and with
+            more than one every frame keeps its own.
         bounds: poses and bounds from :func:`scene_bounds`.
         names: [N] frame names.
         split: int8 [N] split codes.
@@ -276,8 +283,10 @@ def imported_dataset(
             camera and what the bounds came from are added.
         normalization: [4, 4] source-to-scene transform when not the bounds' own.
     """
+    table, index = cameras
+    source_camera = table[0]
     inliers = bounds.inliers
-    return Dataset(
+    ds = Dataset(
         images=imgs.images,
         kind="dataset",
         alpha=imgs.alpha,
@@ -299,6 +308,9 @@ def imported_dataset(
             "bounds_from": bounds.bounds_from,
         },
     )
+    if len(table) > 1:
+        ds.set_cameras([resized_camera(c, imgs.images) for c in table], index)
+    return ds
 
 
 def points_extra(points: np.ndarray, colors: np.ndarray | None) -> dict[str, np.ndarray]:

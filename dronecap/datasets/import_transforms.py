@@ -149,12 +149,8 @@ def import_transforms(
 
     Args:
         src: a folder (see the module docstring) or a ``.json`` file.
-        out_path: the ``.h5`` to write (atomically).
-        size: stored image width in pixels (height keeps the aspect ratio).
-        color: "auto" (gray when every image is gray), "rgb" or "gray".
-
-    Raises:
-        InputError: one line naming the file and what is wrong.
+        out_path, size, color, progress: as for every importer
+            (:mod:`dronecap.datasets.import_scene`).
     """
     check_options(size, color)
     src = Path(src)
@@ -183,8 +179,7 @@ def import_transforms(
     check_import_memory(paths, size, first_json)
     imgs = read_images(paths, size, color, progress)
     table, index = _frame_cameras(entries, *imgs.source_size)
-    k0 = table[0]
-    k = resized_camera(k0, imgs.images)
+    k = resized_camera(table[0], imgs.images)
     c2w = opengl_to_opencv(np.stack(poses))
     split = _split(entries, paths, first_json)
     top = metas[first_json]
@@ -202,7 +197,7 @@ def import_transforms(
     names = [str(fr.get("dronecap_name", fr["file_path"])) for fr, *_ in entries]
     ds = imported_dataset(
         imgs,
-        k0,
+        (table, index),  # nerfstudio's per-frame intrinsics: a camera per frame
         b,
         names,
         split,
@@ -215,8 +210,6 @@ def import_transforms(
         {"source": "transforms.json"},
         normalization=norm,
     )
-    if len(table) > 1:  # nerfstudio's per-frame intrinsics: a camera per frame
-        ds.set_cameras([resized_camera(c, imgs.images) for c in table], index)
     return write_dataset(out_path, ds)
 
 

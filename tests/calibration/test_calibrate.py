@@ -38,19 +38,25 @@ def reference(path: Path) -> dict:
     return json.loads(path.read_text())
 
 
+def near_reference(got: dict, ref: dict, **tolerance: dict) -> None:
+    """Assert our calibration ``got`` matches OpenCV's ``ref`` (K, rms): each of fx, fy, cx, cy
+    and rms named in ``tolerance`` within its ``pytest.approx`` keywords. The reference is in
+    OpenCV's pixel convention (centres at integers); ours adds 0.5."""
+    k = np.array(ref["K"])
+    theirs = {"fx": k[0, 0], "fy": k[1, 1], "cx": k[0, 2], "cy": k[1, 2], "rms": ref["rms"]}
+    ours = {**got, "cx": got["cx"] - 0.5, "cy": got["cy"] - 0.5}
+    for name, tol in tolerance.items():
+        assert ours[name] == pytest.approx(theirs[name], **tol), name
+
+
 def test_chessboard_left_matches_opencv_reference(tmp_path):
     ref = reference(CHESS / "reference_calibration_opencv5.json")["left"]
     rc, got = calibrate_cli(
         tmp_path, str(CHESS / "left*.jpg"), "--pattern", "chessboard", "--board", "9x6"
     )
     assert rc == 0 and len(got["views_used"]) == ref["found"] == 13
-    k = np.array(ref["K"])
-    assert got["fx"] == pytest.approx(k[0, 0], rel=0.005)
-    assert got["fy"] == pytest.approx(k[1, 1], rel=0.005)
-    # The reference is in OpenCV's pixel convention (centres at integers); ours adds 0.5.
-    assert got["cx"] - 0.5 == pytest.approx(k[0, 2], abs=1.0)
-    assert got["cy"] - 0.5 == pytest.approx(k[1, 2], abs=1.0)
-    assert got["rms"] == pytest.approx(ref["rms"], abs=0.05)
+    focal, centre = {"rel": 0.005}, {"abs": 1.0}
+    near_reference(got, ref, fx=focal, fy=focal, cx=centre, cy=centre, rms={"abs": 0.05})
     assert got["model"] == "pinhole" and len(got["distortion"]) == 5
     assert got["width"] == 640 and got["height"] == 480
 
@@ -63,12 +69,7 @@ def test_charuco_matches_opencv_reference(tmp_path):
         *("--pattern", "charuco", "--board", "5x7", "--square", "0.04", "--marker", "0.02"),
     )
     assert rc == 0 and len(got["views_used"]) == ref["n_views"] == 4
-    k = np.array(ref["K"])
-    assert got["fx"] == pytest.approx(k[0, 0], rel=0.01)
-    assert got["fy"] == pytest.approx(k[1, 1], rel=0.01)
-    assert got["cx"] - 0.5 == pytest.approx(k[0, 2], rel=0.01)
-    assert got["cy"] - 0.5 == pytest.approx(k[1, 2], rel=0.01)
-    assert got["rms"] == pytest.approx(ref["rms"], rel=0.01)
+    near_reference(got, ref, **dict.fromkeys(("fx", "fy", "cx", "cy", "rms"), {"rel": 0.01}))
     # Four views leave k2, k3 loose and the lower-right corner of the image without a corner.
     assert any("poorly constrained" in w for w in got["warnings"])
     assert any("bottom-right corner" in w for w in got["warnings"])

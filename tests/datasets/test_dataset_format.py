@@ -92,6 +92,16 @@ def assert_one_line_naming(err: pytest.ExceptionInfo, path: Path) -> None:
     assert str(path) in msg
 
 
+def assert_refused(p: Path, ds: Dataset, message: str) -> None:
+    """Writing ``ds`` to ``p`` fails before anything is written, in one line naming ``p`` and
+    saying ``message``."""
+    with pytest.raises(DatasetError) as err:
+        write_dataset(p, ds)
+    assert_one_line_naming(err, p)
+    assert message in str(err.value)
+    assert not p.exists()
+
+
 def make_bad_file(p: Path, case: str) -> None:
     """Write a file at ``p`` that is broken in the way ``case`` names."""
     if case == "missing":
@@ -151,12 +161,7 @@ def test_inconsistent_fields_are_refused_before_writing(
 ) -> None:
     ds = full_dataset()
     setattr(ds, field, value)
-    p = tmp_path / "bad.h5"
-    with pytest.raises(DatasetError) as err:
-        write_dataset(p, ds)
-    assert_one_line_naming(err, p)
-    assert message in str(err.value)
-    assert not p.exists()
+    assert_refused(tmp_path / "bad.h5", ds, message)
 
 
 def test_failed_write_leaves_no_file_and_keeps_the_old_one(tmp_path: Path) -> None:
@@ -236,9 +241,4 @@ def test_geometry_is_validated_on_write(tmp_path: Path, field: str, value, messa
         ds.poses[2, 0, 3] = np.nan
     else:
         setattr(ds, field, value)
-    p = tmp_path / "bad.h5"
-    with pytest.raises(DatasetError) as err:
-        write_dataset(p, ds)
-    assert_one_line_naming(err, p)
-    assert message in str(err.value)
-    assert not p.exists()
+    assert_refused(tmp_path / "bad.h5", ds, message)

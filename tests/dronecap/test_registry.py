@@ -1,4 +1,4 @@
-"""One face per stage: the registry (dronecap/stages.py) declares a stage's outputs, key figure
+"""One face per stage: the registry (dronecap/registry.py) declares a stage's outputs, key figure
 and pictures once, and report.html's pictures come from it (no per-command branches)."""
 
 from __future__ import annotations
@@ -6,13 +6,13 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from dronecap import report_html, stages
+from dronecap import registry, report_html
 from dronecap.cli import main
 from tests.nerf.conftest import cube_h5  # noqa: F401  (pytest fixture)
 
 
 def test_picture_names_are_unique_within_a_stage():
-    for entry in stages.STAGES.values():
+    for entry in registry.STAGES.values():
         names = [name for name, _ in entry.pictures]
         assert len(names) == len(set(names)), entry.name
 
@@ -22,9 +22,9 @@ def test_a_training_run_gets_the_pictures_its_entry_declares(cube_h5, tmp_path):
     args = ["train", str(cube_h5), "--preset", "test", "--steps", "20", "--out", str(run)]
     assert main([*args, "--no-progress", "--threads", "1"]) == 0
     made = report_html.stage_pictures("train", run, {"dataset": str(cube_h5)}, tmp_path / "pics")
-    declared = [f"train_{name}" for name, _ in stages.STAGES["train"].pictures]
+    declared = [f"train_{name}" for name, _ in registry.STAGES["train"].pictures]
     assert [p.name for p in made] == declared and all(p.stat().st_size > 0 for p in made)
-    figure = stages.STAGES["train"].figure(run)
+    figure = registry.STAGES["train"].figure(run)
     assert "PSNR" in figure and "GAP9" in figure  # the key figure reads metrics.json, cost.json
 
 
@@ -38,9 +38,9 @@ def test_a_new_stage_is_one_registry_entry(tmp_path, monkeypatch):
         return out
 
     swarm = dataclasses.replace(
-        stages.STAGES["ingest"], name="swarm", pictures=(("drones.png", drones),)
+        registry.STAGES["ingest"], name="swarm", pictures=(("drones.png", drones),)
     )
-    monkeypatch.setitem(stages.STAGES, "swarm", swarm)
+    monkeypatch.setitem(registry.STAGES, "swarm", swarm)
     made = report_html.stage_pictures("swarm", tmp_path / "swarm", {}, tmp_path / "pics")
     assert [p.name for p in made] == ["swarm_drones.png"]
     assert report_html.stage_pictures("calibrate", tmp_path, {}, tmp_path / "pics") == []

@@ -6,9 +6,7 @@ refused, a plain-text connection is refused, and a drone sending NaN and one sen
 
 from __future__ import annotations
 
-import dataclasses
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -18,48 +16,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dronecap.nerf.config import preset
-
 PORT = 18743
-
-
-def _start(cmd: str, env: dict, log: Path) -> subprocess.Popen:
-    """A long-running Flower command (its trailing ``&`` dropped), output into ``log``."""
-    return subprocess.Popen(
-        "exec " + cmd.rstrip(" &"),
-        shell=True,
-        env=env,
-        start_new_session=True,
-        stdout=log.open("w"),
-        stderr=subprocess.STDOUT,
-    )
 
 
 @pytest.mark.slow
 @pytest.mark.data
-def test_tls_and_node_auth_refuse_strangers_and_poisoned_updates(lego_dir, tmp_path):
-    from dronecap.datasets.blender import import_blender
-    from dronecap.datasets.shard import shard_dataset
+def test_tls_and_node_auth_refuse_strangers_and_poisoned_updates(lego_run, flower, tmp_path):
     from dronecap.federated.engines import write_deployment
     from dronecap.federated.secure import drone_key, make_keys
-    from dronecap.federated.state import FedSettings, load_rounds, save_settings
+    from dronecap.federated.state import load_rounds
 
-    h5 = import_blender(lego_dir, tmp_path / "dataset.h5", progress=False)
-    shards = shard_dataset(h5, tmp_path / "shards", 4, "iid")
-    run = tmp_path / "run"
-    s = FedSettings(
-        shards=[str(shards / f"client_{k}.h5") for k in range(4)],
-        cfg=dataclasses.asdict(preset("test")),
-        pretrain=8,
-        local_steps=4,
-        rounds=1,
-        eval_views=1,
-        transfer_dtype="fp16",
-        quant_bits=8,
-        sparse_rows=0.1,
-        poison={"2": "nan", "3": "huge"},
-    )
-    save_settings(run, s)
+    run = lego_run(4, rounds=1, quant_bits=8, sparse_rows=0.1, poison={"2": "nan", "3": "huge"})
     keys, strangers = tmp_path / "keys", tmp_path / "strangers"
     make_keys(keys, 4)
     make_keys(strangers, 1)
@@ -69,35 +36,30 @@ def test_tls_and_node_auth_refuse_strangers_and_poisoned_updates(lego_dir, tmp_p
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env['PATH']}"
     register = [c for c in cmds if c.startswith("flwr supernode register")]
     nodes = [c for c in cmds if c.startswith("flower-supernode")]
-    procs = [_start(cmds[1], env, tmp_path / "superlink.log")]
-    try:
-        time.sleep(8)
-        for cmd in register:  # the four drones' public keys, over TLS
-            done = subprocess.run(cmd, shell=True, env=env, capture_output=True, text=True)
-            assert done.returncode == 0, done.stdout + done.stderr
-        # plain text to the TLS port: no HTTP answer
-        with pytest.raises(OSError):
-            urllib.request.urlopen(f"http://127.0.0.1:{PORT}/", timeout=10)
-        # a stranger with a valid TLS trust but an unregistered key, as partition 9: if it
-        # were admitted the server would find partitions 0..3 and 9 and stop with an error
-        stranger = nodes[0].replace(str(drone_key(keys, 0)[0]), str(drone_key(strangers, 0)[0]))
-        stranger = stranger.replace("partition-id=0", "partition-id=9").replace("9094", "9099")
-        procs.append(_start(stranger, env, tmp_path / "stranger.log"))
-        insecure = nodes[1].split(" --root-certificates")[0] + " --insecure --superlink"
-        insecure += f" 127.0.0.1:{PORT} --port 9098 --node-config 'partition-id=8'"
-        procs.append(_start(insecure, env, tmp_path / "plain.log"))
-        for k, cmd in enumerate(nodes):
-            procs.append(_start(cmd, env, tmp_path / f"node_{k}.log"))
-        time.sleep(2)
-        done = subprocess.run(
-            cmds[-1], shell=True, env=env, capture_output=True, text=True, timeout=1500
-        )
+    flower.start(cmds[1], env, tmp_path / "superlink.log")
+    time.sleep(8)
+    for cmd in register:  # the four drones' public keys, over TLS
+        done = subprocess.run(cmd, shell=True, env=env, capture_output=True, text=True)
         assert done.returncode == 0, done.stdout + done.stderr
-    finally:
-        for p in procs:
-            os.killpg(p.pid, signal.SIGTERM)
-        for p in procs:
-            p.wait(timeout=60)
+    # plain text to the TLS port: no HTTP answer
+    with pytest.raises(OSError):
+        urllib.request.urlopen(f"http://127.0.0.1:{PORT}/", timeout=10)
+    # a stranger with a valid TLS trust but an unregistered key, as partition 9: if it
+    # were admitted the server would find partitions 0..3 and 9 and stop with an error
+    stranger = nodes[0].replace(str(drone_key(keys, 0)[0]), str(drone_key(strangers, 0)[0]))
+    stranger = stranger.replace("partition-id=0", "partition-id=9").replace("9094", "9099")
+    flower.start(stranger, env, tmp_path / "stranger.log")
+    insecure = nodes[1].split(" --root-certificates")[0] + " --insecure --superlink"
+    insecure += f" 127.0.0.1:{PORT} --port 9098 --node-config 'partition-id=8'"
+    flower.start(insecure, env, tmp_path / "plain.log")
+    for k, cmd in enumerate(nodes):
+        flower.start(cmd, env, tmp_path / f"node_{k}.log")
+    time.sleep(2)
+    done = subprocess.run(
+        cmds[-1], shell=True, env=env, capture_output=True, text=True, timeout=1500
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    flower.stop()
     r0, r1 = load_rounds(run)
     assert sorted(r1["bytes_up"]) == ["0", "1", "2", "3"]  # only the four listed drones
     assert sorted(r1["failed"]) == ["2", "3"] and r1["participants"] == 2

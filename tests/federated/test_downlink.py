@@ -3,8 +3,6 @@ without the previous replica gets the whole model; one real Flower run with them
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 from flwr.app import ArrayRecord, ConfigRecord, RecordDict
@@ -19,7 +17,6 @@ from dronecap.federated.downlink import (
 )
 from dronecap.federated.fedavg import MODEL, DroneFedAvg, payload_bytes
 from dronecap.federated.sparse import TABLE
-from dronecap.nerf.config import preset
 
 
 def _models(rng: np.random.Generator, rounds: int) -> list[dict[str, np.ndarray]]:
@@ -87,26 +84,16 @@ def test_strategy_sends_holders_the_change_and_others_the_whole_model(server_tas
 
 
 @pytest.mark.data
-def test_simulation_with_sparse_downloads(lego_dir, tmp_path):
+def test_simulation_with_sparse_downloads(lego_run):
     """2 lego drones, 3 rounds, drone 1 fails in round 2: in round 3 drone 0 is sent the
     change, drone 1 the whole model; each drone's copy is the global model, bit for bit."""
-    from dronecap.datasets.blender import import_blender
-    from dronecap.datasets.shard import shard_dataset
     from dronecap.federated.engines import run_simulated
-    from dronecap.federated.state import FedSettings, round_file, save_settings
+    from dronecap.federated.state import round_file
     from dronecap.nerf.trainer import Trainer
 
-    h5 = import_blender(lego_dir, tmp_path / "dataset.h5", progress=False)
-    shards = shard_dataset(h5, tmp_path / "shards", 2, "iid")
-    run = tmp_path / "run"
-    s = FedSettings(
-        shards=[str(shards / f"client_{k}.h5") for k in range(2)],
-        cfg=dataclasses.asdict(preset("test")),
-        pretrain=8,
-        local_steps=4,
+    run = lego_run(
+        2,
         rounds=3,
-        eval_views=1,
-        transfer_dtype="fp16",
         quant_bits=4,
         sparse_rows=0.05,
         down_rows=0.05,
@@ -114,7 +101,6 @@ def test_simulation_with_sparse_downloads(lego_dir, tmp_path):
         fail_client=1,
         fail_round=2,
     )
-    save_settings(run, s)
     r0, r1, r2, r3 = run_simulated(run)
     whole = r1["bytes_down"]["0"]
     assert r1["bytes_down"]["1"] == whole  # round 1: the whole model to both

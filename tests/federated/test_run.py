@@ -179,7 +179,7 @@ def test_cli_interrupted_run_resumes_from_last_round(lego_h5, tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.data
-def test_deployment_superlink_and_supernodes_on_loopback(lego_shards, tmp_path):
+def test_deployment_superlink_and_supernodes_on_loopback(lego_shards, flower, tmp_path):
     """The same apps with real SuperLink/SuperNode processes (the commands of --deployment)."""
     from dronecap.federated.engines import write_deployment
     from dronecap.federated.state import FedSettings, load_rounds, save_settings
@@ -191,29 +191,14 @@ def test_deployment_superlink_and_supernodes_on_loopback(lego_shards, tmp_path):
     cmds = write_deployment(run, port=18731)
     env = dict(os.environ, FLWR_HOME=cmds[0].split("=", 1)[1])
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env['PATH']}"
-    procs = []
-    try:
-        for cmd in cmds[1:-1]:  # the SuperLink, then one SuperNode per drone
-            procs.append(
-                subprocess.Popen(
-                    "exec " + cmd.rstrip(" &"),  # the Popen pid is the Flower process
-                    shell=True,
-                    env=env,
-                    start_new_session=True,
-                    stdout=subprocess.DEVNULL,
-                    stderr=subprocess.DEVNULL,
-                )
-            )
-            time.sleep(5 if len(procs) == 1 else 1)
-        done = subprocess.run(
-            cmds[-1], shell=True, env=env, capture_output=True, text=True, timeout=900
-        )
-        assert done.returncode == 0, done.stdout + done.stderr
-    finally:
-        for p in procs:
-            os.killpg(p.pid, signal.SIGTERM)
-        for p in procs:
-            p.wait(timeout=60)
+    for cmd in cmds[1:-1]:  # the SuperLink, then one SuperNode per drone
+        flower.start(cmd, env)
+        time.sleep(5 if cmd == cmds[1] else 1)
+    done = subprocess.run(
+        cmds[-1], shell=True, env=env, capture_output=True, text=True, timeout=900
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    flower.stop()
     rounds = load_rounds(run)
     assert [r["round"] for r in rounds] == [0, 1, 2]
     assert rounds[-1]["participants"] == 2

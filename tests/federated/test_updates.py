@@ -4,8 +4,6 @@ simulation with three hostile drones."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 from flwr.app import Array, ArrayRecord, Message, MessageType, MetricRecord, RecordDict
@@ -26,7 +24,6 @@ from dronecap.federated.sparse import (
     encode_update,
     select_rows,
 )
-from dronecap.nerf.config import preset
 
 
 @pytest.mark.parametrize("bits", [8, 4])
@@ -142,32 +139,21 @@ def test_strategy_averages_the_honest_drones_and_logs_the_others(server_task):
 
 
 @pytest.mark.data
-def test_simulation_leaves_out_nan_huge_and_miscounted_drones(lego_dir, tmp_path):
+def test_simulation_leaves_out_nan_huge_and_miscounted_drones(lego_run):
     """A real Flower round (4 lego drones, sparse 4-bit updates): drones 1-3 send a NaN, a 1e30
     model and a claim of 10^9 images; they are left out with their reasons, the round
     completes with drone 0's update and a finite model."""
-    from dronecap.datasets.blender import import_blender
-    from dronecap.datasets.shard import shard_dataset
     from dronecap.federated.engines import run_simulated
-    from dronecap.federated.state import FedSettings, save_settings
 
-    h5 = import_blender(lego_dir, tmp_path / "dataset.h5", progress=False)
-    shards = shard_dataset(h5, tmp_path / "shards", 4, "iid")
-    s = FedSettings(
-        shards=[str(shards / f"client_{k}.h5") for k in range(4)],
-        cfg=dataclasses.asdict(preset("test")),
-        pretrain=8,
-        local_steps=4,
+    run = lego_run(
+        4,
         rounds=1,
-        eval_views=1,
-        transfer_dtype="fp16",
         quant_bits=4,
         sparse_rows=0.05,
         visibility=True,
         poison={"1": "nan", "2": "huge", "3": "count"},
     )
-    save_settings(tmp_path / "run", s)
-    r0, r1 = run_simulated(tmp_path / "run")
+    r0, r1 = run_simulated(run)
     assert r1["participants"] == 1 and sorted(r1["bytes_up"]) == ["0", "1", "2", "3"]
     failed = r1["failed"]
     assert sorted(failed) == ["1", "2", "3"]
@@ -176,4 +162,4 @@ def test_simulation_leaves_out_nan_huge_and_miscounted_drones(lego_dir, tmp_path
     assert np.isfinite(r1["psnr"])
     # the honest sparse update is a fraction of the poisoned drones' whole fp32 models
     assert r1["bytes_up"]["0"] < 0.2 * r1["bytes_up"]["1"]
-    assert (tmp_path / "run" / "clients" / "client_0" / "residual_001.npz").exists()
+    assert (run / "clients" / "client_0" / "residual_001.npz").exists()

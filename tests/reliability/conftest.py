@@ -8,6 +8,7 @@ every field the stages read, so a mutation of any of them can be tried.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import signal
 import subprocess
@@ -41,6 +42,25 @@ def ring_poses(n: int = N, radius: float = 3.0, height: float = 0.6) -> np.ndarr
         poses[i, :3, :3] = np.stack([x, y, z], 1)
         poses[i, :3, 3] = eye
     return poses
+
+
+def random_posed(n: int, seed: int, intrinsics: Intrinsics) -> Dataset:
+    """A valid posed flight of ``n`` random (incompressible) 160x160 RGB frames on a ring, seen
+    through ``intrinsics``."""
+    rng = np.random.default_rng(seed)
+    poses = ring_poses(n)
+    dist = np.linalg.norm(poses[:, :3, 3], axis=1)
+    return dataclasses.replace(
+        small_dataset("posed", 3),
+        images=rng.integers(0, 256, (n, 160, 160, 3), dtype=np.uint8),
+        poses=poses,
+        intrinsics=intrinsics,
+        names=None,
+        source_index=None,
+        timestamps=None,
+        near_far=np.stack([dist - 1, dist + 1], 1),
+        extra={},
+    )
 
 
 def small_dataset(kind: str, channels: int) -> Dataset:
@@ -163,14 +183,16 @@ def run_cli(argv: list[str], timeout_s: int = 60) -> Outcome:
         signal.signal(signal.SIGALRM, old)
 
 
-def dronecap(*argv: str, cwd: Path) -> subprocess.Popen:
-    """``dronecap -q ARGV`` started in a fresh process in ``cwd`` (stderr kept for the test)."""
+def dronecap(*argv: str, cwd: Path, env: dict[str, str] | None = None) -> subprocess.Popen:
+    """``dronecap -q ARGV`` started in a fresh process in ``cwd`` (stderr kept for the test),
+    with environment ``env`` (default: this one's)."""
     return subprocess.Popen(
         [sys.executable, "-m", "dronecap.cli", "-q", *argv],
         cwd=cwd,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
+        env=env,
     )
 
 

@@ -19,18 +19,13 @@ import pytest
 
 from dronecap.datasets.format import open_dataset, write_dataset
 from dronecap.files import lock_path, output_lock
-from tests.reliability.conftest import small_dataset
+from tests.reliability.conftest import dronecap, small_dataset
 
 
 def _start(*argv: str, cwd: Path) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "dronecap.cli", "-q", *argv],
-        cwd=cwd,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "DRONECAP_PROGRESS": "off", "PYTHONPATH": os.getcwd()},
-    )
+    """``dronecap -q ARGV`` in ``cwd``, importing dronecap from this checkout, no progress."""
+    env = {**os.environ, "DRONECAP_PROGRESS": "off", "PYTHONPATH": os.getcwd()}
+    return dronecap(*argv, cwd=cwd, env=env)
 
 
 def test_second_writer_stops_in_one_line(small_files, tmp_path: Path) -> None:

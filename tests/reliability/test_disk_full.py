@@ -7,19 +7,17 @@ library (it segfaults on ENOSPC when it writes itself) is a failed test, not a d
 
 from __future__ import annotations
 
-import dataclasses
 import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from dronecap.datasets import write
 from dronecap.datasets.format import Intrinsics, open_dataset, write_dataset
 from dronecap.errors import OutputError
-from tests.reliability.conftest import ring_poses, run_cli, small_dataset
+from tests.reliability.conftest import random_posed, run_cli, small_dataset
 
 FRAMES = 30  # 30 random 160x160 RGB frames: 2.3 MB, incompressible
 
@@ -27,21 +25,7 @@ FRAMES = 30  # 30 random 160x160 RGB frames: 2.3 MB, incompressible
 @pytest.fixture(scope="module")
 def big_posed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A valid posed.h5 larger than the 1 MB filesystem."""
-    ds = small_dataset("posed", 3)
-    rng = np.random.default_rng(3)
-    poses = ring_poses(FRAMES)
-    dist = np.linalg.norm(poses[:, :3, 3], axis=1)
-    ds = dataclasses.replace(
-        ds,
-        images=rng.integers(0, 256, (FRAMES, 160, 160, 3), dtype=np.uint8),
-        poses=poses,
-        intrinsics=Intrinsics(150.0, 150.0, 80.0, 80.0, 160, 160),
-        names=None,
-        source_index=None,
-        timestamps=None,
-        near_far=np.stack([dist - 1, dist + 1], 1),
-        extra={},
-    )
+    ds = random_posed(FRAMES, 3, Intrinsics(150.0, 150.0, 80.0, 80.0, 160, 160))
     return write_dataset(tmp_path_factory.mktemp("big") / "posed.h5", ds)
 
 

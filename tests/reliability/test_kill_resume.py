@@ -4,14 +4,13 @@ temporary files. (federate: tests/federated/test_run.py.) Slow: real processes, 
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dronecap.datasets.format import DatasetError, open_dataset, write_dataset
-from tests.reliability.conftest import complete, kill_at, ring_poses, small_dataset, strays
+from tests.reliability.conftest import complete, kill_at, random_posed, small_dataset, strays
 
 pytestmark = pytest.mark.slow
 DELAYS_S = (0.5, 1.0, 1.5, 2.5, 4.0)
@@ -20,21 +19,7 @@ DELAYS_S = (0.5, 1.0, 1.5, 2.5, 4.0)
 @pytest.fixture(scope="module")
 def big_posed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """120 random 160x160 RGB frames (9 MB): writing it takes a while."""
-    n = 120
-    rng = np.random.default_rng(5)
-    poses = ring_poses(n)
-    dist = np.linalg.norm(poses[:, :3, 3], axis=1)
-    ds = dataclasses.replace(
-        small_dataset("posed", 3),
-        images=rng.integers(0, 256, (n, 160, 160, 3), dtype=np.uint8),
-        poses=poses,
-        intrinsics=small_dataset("posed", 3).intrinsics.scaled_to(160, 160),
-        names=None,
-        source_index=None,
-        timestamps=None,
-        near_far=np.stack([dist - 1, dist + 1], 1),
-        extra={},
-    )
+    ds = random_posed(120, 5, small_dataset("posed", 3).intrinsics.scaled_to(160, 160))
     return write_dataset(tmp_path_factory.mktemp("big") / "posed.h5", ds)
 
 

@@ -4,7 +4,7 @@ declared once and read by the CLI (:mod:`dronecap.cli`), the pipeline runner and
 (:mod:`dronecap.pipeline`) and ``report.html`` (:mod:`dronecap.report_html`).
 
 Each entry names a module in :mod:`dronecap.commands` defining ``Settings`` (a dataclass of
-:func:`dronecap.stage.setting` fields: the options, their help and defaults) and
+:func:`dronecap.settings.setting` fields: the options, their help and defaults) and
 ``run(settings) -> int`` (the exit code). The CLI (:mod:`dronecap.cli`), the ``pipelines.yaml``
 validation (:mod:`dronecap.pipeline_spec`) and the pipeline runner (:mod:`dronecap.pipeline`)
 all start here. This module imports only light modules (their heavy imports are inside their

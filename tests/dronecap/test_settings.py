@@ -15,18 +15,16 @@ from dronecap import cli
 from dronecap.errors import InputError
 from dronecap.pipeline import Runner
 from dronecap.pipeline_spec import SpecError, build_pipeline, load_specs
-from dronecap.stage import (
-    Settings,
+from dronecap.registry import STAGES, Stage
+from dronecap.settings import Settings, flatten, setting
+from dronecap.settings_cli import (
     add_options,
     check,
     command_line,
-    flatten,
     from_namespace,
     from_params,
     options,
-    setting,
 )
-from dronecap.stages import STAGES, Stage
 
 
 @dataclass
