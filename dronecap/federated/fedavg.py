@@ -178,7 +178,8 @@ class DroneFedAvg(FedAvgM):
     global model ``self.current_arrays`` (set by :meth:`resume`); defaults (1, 0) are plain
     FedAvg. With ``table_step`` "mean" the hash table skips that step and takes the mean change
     itself: a row seen by one drone (visibility-weighted, a swarm's drone shards) is that drone's
-    own change, which a server step of 2 would double. After each ``configure_train``/``aggregate_train``, ``self.last_round`` holds
+    own change, which a server step of 2 would double. After each
+    ``configure_train``/``aggregate_train``, ``self.last_round`` holds
     ``bytes_down`` (per destination node), ``bytes_up`` (per replying node) and ``failed``
     (node id -> reason).
     """
