@@ -37,6 +37,7 @@ from dronecap.sfm.links import separate_unlinked
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.report import pose_jumps
 
+GLOBAL_MIN_FRACTION = 0.99  # a global model is kept only with this share of the usable frames
 TINY_MODEL = 0.5  # our start registered under this fraction of usable frames: also try COLMAP's
 ALT_MODELS = "models_alt"  # folder of the models COLMAP started from its own initial pair
 PAIR_TRIES = 3  # our initial pairs tried in turn (best first) until one starts a non-tiny model
@@ -72,9 +73,12 @@ def colmap_job(
     root = Path(work)
     db, images = root / "database.db", root / "images"
     times: dict[str, float] = {}
-    out: dict[str, Any] = {"times": times, "models": {}, "best": None, "stopped": None}
+    cpu: dict[str, float] = {}  # CPU seconds (all threads of this process) per phase
+    out: dict[str, Any] = {"times": times, "cpu": cpu, "models": {}, "best": None, "stopped": None}
+    last = [None, time.process_time()]
 
     def phase(name: str, registered: int = 0) -> float:
+        _cpu_since(cpu, last, name)
         emit(("phase", name, registered))
         return time.perf_counter()
 
@@ -86,10 +90,82 @@ def colmap_job(
     def on_register(k: int) -> None:
         emit(("registered", k))
 
-    t = phase("map")
     opts = _capped(opts, deadline)
+    found = {}
+    if opts.mapper == "global":
+        t = phase("map global")
+        found = _global_first(out, root, opts, refine_camera, len(usable))
+        times["map_global"] = time.perf_counter() - t
+    if not found:
+        found = _incremental(
+            out, root, opts, refine_camera, on_register, len(usable), deadline, phase
+        )
+    out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
+    if not found:
+        out["stopped"] = NO_START
+        return out
+    size = _settle(
+        out, found, root, names, len(usable), opts, refine_camera, deadline, phase, on_register
+    )
+    if n_drones > 1:
+        t = phase("separate unlinked flights", size)
+        out["best"], out["flights"] = separate_unlinked(
+            db, images, root, Path(out["best"]), names, n_drones, opts, refine_camera, on_register
+        )
+        times["unlinked"] = time.perf_counter() - t
+    t = phase("bend check", size)
+    out["bend_check"] = rotation_disagreement(db, Path(out["best"]))
+    times["bend_check"] = time.perf_counter() - t
+    if refine_after:
+        t = phase("refine camera", size)
+        out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
+        times["refine_camera"] = time.perf_counter() - t
+    _cpu_since(cpu, last, None)
+    return out
+
+
+def _cpu_since(cpu: dict[str, float], last: list[Any], name: str | None) -> None:
+    """Add the CPU seconds since ``last`` = [phase, process_time] to that phase in ``cpu``;
+    ``name`` is the phase starting now (None: the end)."""
+    now = time.process_time()
+    if last[0] is not None:
+        cpu[last[0]] = round(cpu.get(last[0], 0.0) + now - last[1], 3)
+    last[0], last[1] = name, now
+
+
+def _global_first(
+    out: dict[str, Any], root: Path, opts: SfmOptions, refine_camera: bool, n_usable: int
+) -> dict[str, dict[str, float]]:
+    """GLOMAP's models when the guard accepts them (:mod:`global_map`), else {}; the guard's
+    record goes to ``out["global_mapper"]``."""
+    from dronecap.sfm.global_map import accept, global_map
+
+    found, record = global_map(
+        root / "database.db", root / "images", root / "global", opts, refine_camera
+    )
+    record["kept"] = accept(record, n_usable, GLOBAL_MIN_FRACTION)
+    out["global_mapper"] = record
+    out["init_pair"] = {"tried": [], "chosen": None}
+    return found if record["kept"] else {}
+
+
+def _incremental(
+    out: dict[str, Any],
+    root: Path,
+    opts: SfmOptions,
+    refine_camera: bool,
+    on_register: Callable[[int], None],
+    n_usable: int,
+    deadline: float | None,
+    phase: Callable[..., float],
+) -> dict[str, dict[str, float]]:
+    """Incremental mapping from our initial pairs, then from COLMAP's own start when ours
+    stays tiny (or ``opts.init_trials`` > 1). Returns the models found; fills ``out``'s
+    init_pair, times and, when the time cap passed, stopped."""
+    db, images, times = root / "database.db", root / "images", out["times"]
+    t = phase("map")
     pairs, info = initial_pairs(db, opts)
-    enough = TINY_MODEL * len(usable)
+    enough = TINY_MODEL * n_usable
     found, tried = map_from_pairs(db, images, root, opts, refine_camera, on_register, pairs, enough)
     out["init_pair"] = {
         **info,
@@ -106,25 +182,7 @@ def colmap_job(
         alt = incremental_map(db, images, root / ALT_MODELS, opts, refine_camera, on_register)
         times["map_colmap_start"] = time.perf_counter() - t
         found.update(alt)
-    out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
-    if not found:
-        out["stopped"] = NO_START
-        return out
-    size = _settle(
-        out, found, root, names, len(usable), opts, refine_camera, deadline, phase, on_register
-    )
-    if n_drones > 1:
-        t = phase("separate unlinked flights", size)
-        out["best"], out["flights"] = separate_unlinked(
-            db, images, root, Path(out["best"]), names, n_drones, opts, refine_camera, on_register
-        )
-        times["unlinked"] = time.perf_counter() - t
-    out["bend_check"] = rotation_disagreement(db, Path(out["best"]))
-    if refine_after:
-        t = phase("refine camera", size)
-        out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
-        times["refine_camera"] = time.perf_counter() - t
-    return out
+    return found
 
 
 def _front_end(
