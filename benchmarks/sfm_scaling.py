@@ -48,11 +48,11 @@ OPTIONS: dict[str, dict] = {
         "mapper": "incremental",
     },
     "default": {},
-    "local BA": {
+    "fast": {
         "ba_global_ratio": 3.0,
         "ba_global_max_iterations": 10,
-        "ba_local_images": 4,
         "ba_prune_redundant": True,
+        "loop_pairs": "words",
     },
     "words loops": {"loop_pairs": "words"},
     "global": {"mapper": "global"},

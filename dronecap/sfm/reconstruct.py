@@ -30,12 +30,12 @@ from dronecap.sfm.colmap_steps import (
     incremental_map,
     match,
 )
-from dronecap.sfm.flights import flight_of, image_names
+from dronecap.sfm.flights import image_names
 from dronecap.sfm.initial_pair import FALLBACK_MIN_ANGLE, initial_pairs
 from dronecap.sfm.isolate import run_isolated
 from dronecap.sfm.links import separate_unlinked
 from dronecap.sfm.options import SfmOptions
-from dronecap.sfm.report import pose_jumps
+from dronecap.sfm.repair import jump_frames, refine_camera_of, remap_jumps
 
 GLOBAL_MIN_FRACTION = 0.99  # a global model is kept only with this share of the usable frames
 TINY_MODEL = 0.5  # our start registered under this fraction of usable frames: also try COLMAP's
@@ -318,78 +318,27 @@ def map_from_pairs(
     return found, tried
 
 
-def jump_frames(model: Path, names: list[str]) -> list[int]:
-    """Frame indices (into ``names``) of ``model`` that :func:`pose_jumps` flags (each drone's
-    flight on its own)."""
-    import pycolmap
+def bar_events(bar: Any, total: int) -> Callable[[tuple[Any, ...]], None]:
+    """The handler of :func:`colmap_job`'s events for a progress ``bar`` (tqdm or
+    :class:`dronecap.progress.LogProgress`): the phase as its description, the frames
+    registered as its count and, while a phase registers frames, an ETA from that phase's own
+    rate (the front end's minutes would otherwise make the bar's own estimate wrong)."""
+    state = {"count": 0, "t0": time.monotonic(), "n0": 0}
 
-    rec = pycolmap.Reconstruction(model)
-    pos = {n: i for i, n in enumerate(names)}
-    regs = sorted((pos[rec.images[i].name], i) for i in rec.reg_image_ids())
-    centres = np.array([rec.images[i].projection_center() for _, i in regs]).reshape(-1, 3)
-    frames = np.array([f for f, _ in regs], dtype=np.int64)
-    flights = np.array([flight_of(names[f]) for f in frames], dtype=np.int64)
-    return pose_jumps(centres, frames, flights)
+    def on_event(ev: tuple[Any, ...]) -> None:
+        if ev[0] == "phase":
+            bar.set_description(f"sfm {ev[1]}")
+            bar.update(ev[2] - state["count"])
+            state.update(count=ev[2], t0=time.monotonic(), n0=ev[2])
+        elif ev[0] == "registered":
+            bar.update(ev[1])
+            state["count"] += ev[1]
+            done, dt = state["count"] - state["n0"], time.monotonic() - state["t0"]
+            if done > 0 and dt > 0:
+                left = max(total - state["count"], 0) * dt / done
+                bar.set_postfix(registered=f"{state['count']}/{total}", eta=f"{left:.0f}s")
 
-
-def remap_jumps(
-    database: Path,
-    image_dir: Path,
-    work: Path,
-    model: Path,
-    jumps: list[int],
-    names: list[str],
-    opts: SfmOptions,
-    refine_camera: bool,
-    on_register: Callable[[int], None],
-) -> tuple[str, dict[str, Any]]:
-    """Deregister the ``jumps`` frames of ``model`` and resume mapping (the extension pass's
-    relaxed thresholds) into ``work/unjumped``, so that they register again against the settled
-    points.
-
-    A frame registered early, against few points of distant structure, can take a pose that
-    fits its points but not the flight (a sideways shift traded for a rotation); later the
-    points are many and its PnP finds the right pose (Himax test_15: frame 19 re-registers on
-    its neighbours' path). Returns the model folder to keep (the new one when it has as many
-    frames and fewer jumps) and a record for the report.
-    """
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(model)
-    size = rec.num_reg_images()
-    for image_id in list(rec.reg_image_ids()):
-        if names.index(rec.images[image_id].name) in jumps:
-            rec.deregister_frame(rec.images[image_id].frame_id)
-    start = work / "unjumped_start"
-    start.mkdir(parents=True, exist_ok=True)
-    rec.write(start)
-    found = incremental_map(
-        database, image_dir, work / "unjumped", opts, refine_camera, on_register, start
-    )
-    record: dict[str, Any] = {"frames": jumps, "kept": False}
-    if found:
-        k = max(found, key=lambda j: found[j]["frames"])
-        left = jump_frames(Path(k), names)
-        if found[k]["frames"] >= size and len(left) < len(jumps):
-            record.update(kept=True, still_jumping=left)
-            return k, record
-    return str(model), record
-
-
-def refine_camera_of(model: Path, out: Path) -> str:
-    """Bundle-adjust ``model`` refining focal length(s) and distortion (not the principal
-    point); written to ``out``, whose path is returned."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(model)
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.refine_focal_length = True
-    ba.refine_extra_params = True
-    ba.refine_principal_point = False
-    pycolmap.bundle_adjustment(rec, ba)
-    out.mkdir(parents=True, exist_ok=True)
-    rec.write(out)
-    return str(out)
+    return on_event
 
 
 @dataclass
@@ -442,16 +391,7 @@ def reconstruct(
 
     bar = progress_bar(total=len(names), desc="sfm", unit="frame", disable=not progress)
 
-    count = [0]  # frames the bar shows; a phase restarts from the model it grows
-
-    def on_event(ev: tuple[Any, ...]) -> None:
-        if ev[0] == "phase":
-            bar.set_description(f"sfm {ev[1]}")
-            bar.update(ev[2] - count[0])
-            count[0] = ev[2]
-        elif ev[0] == "registered":
-            bar.update(ev[1])
-            count[0] += ev[1]
+    on_event = bar_events(bar, len(names))
 
     job = {"work": str(work), "names": names, "options": opts.to_dict()}
     job.update(
