@@ -42,9 +42,12 @@ class SfmOptions:
     overlap: int = 10  # sequential: each frame is matched with this many following frames
     quadratic_overlap: bool = False  # sequential: pair i with i+2^k instead of i+1..i+overlap
     loop_detection: bool = True  # sequential: add pairs of frames that look alike (loops)
-    # how loop pairs are found: "index" pycolmap's visual index (vocabulary tree) of the flight;
-    # "words" our bag of words (sfm/retrieval.py), far cheaper on long flights; "none"
-    loop_pairs: str = "index"
+    # how loop pairs are found: "words" our bag of words (sfm/retrieval.py: every loop_period-th
+    # frame with its loop_num_images most alike frames over overlap+1 frames away); "index"
+    # pycolmap's visual index of the flight; "none". Words: 446-frame corridor 32 CPU-s with
+    # the matching of its pairs (the index alone took 55 s), ATE 0.15 % / rotation 0.36 deg;
+    # 124 frames ATE 0.12 % vs 0.15 %, 0.34 vs 0.48 deg (benchmarks/results/sfm_scaling.md)
+    loop_pairs: str = "words"
     loop_period: int = 5  # query the visual index with every this-many-th frame
     loop_num_images: int = 15  # frames retrieved per query
     visual_words: int = 512  # size of the flight's own visual vocabulary (upper bound)
