@@ -35,6 +35,9 @@ OPTION_HELP = {
     "prior_fallback": "frames that fail to register keep their telemetry prior pose in posed.h5",
     "time_cap": "seconds of mapping after which the model so far is kept (0: no cap)",
     "ba_global_ratio": "global bundle adjustment when the model grew by this factor",
+    "loop_pairs": "loop pairs from: words (our bag of words) | index (pycolmap's visual index) "
+    "| none",
+    "mapper": "incremental | global (GLOMAP, kept only when complete and not bent)",
     "quadratic_overlap": "sequential: pair frame i with i+2^k (COLMAP default) instead of "
     "i+1..i+overlap",
 }

@@ -22,7 +22,7 @@ import numpy as np
 from dronecap.sfm.camera_plan import ESTIMATE_MODEL
 from dronecap.sfm.flights import flight_of
 from dronecap.sfm.options import FINEST_OCTAVE, SfmOptions
-from dronecap.sfm.retrieval import write_cross_flight_pairs
+from dronecap.sfm.retrieval import write_cross_flight_pairs, write_loop_pairs
 
 TRAIN_DESCRIPTORS = 20000  # descriptors sampled to train the flight's visual vocabulary
 MIN_KEYPOINTS = 16  # a frame with fewer SIFT keypoints cannot register (reported as textureless)
@@ -196,24 +196,7 @@ def match(
     elif kind == "exhaustive":
         pycolmap.match_exhaustive(database, **common, device=pycolmap.Device.cpu)
     else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = opts.overlap
-        pairing.quadratic_overlap = opts.quadratic_overlap
-        pairing.num_threads = opts.num_threads
-        use_loops = opts.loop_detection and n_frames > opts.overlap + 1
-        if use_loops:
-            t = time.perf_counter()
-            index_file = work / "visual_index.bin"
-            info["visual_words"] = build_visual_index(database, index_file, opts)
-            info["index_seconds"] = round(time.perf_counter() - t, 3)
-            pairing.loop_detection = True
-            pairing.loop_detection_period = opts.loop_period
-            pairing.loop_detection_num_images = opts.loop_num_images
-            pairing.vocab_tree_path = str(index_file)  # never the default: it downloads
-        info["loop_detection"] = use_loops
-        pycolmap.match_sequential(
-            database, **common, pairing_options=pairing, device=pycolmap.Device.cpu
-        )
+        _match_sequential(database, work, opts, n_frames, common, info)
     if swarm and (kind != "exhaustive" or not own_pairs):  # exhaustive has every pair
         t = time.perf_counter()
         pair_file = work / "cross_flight_pairs.txt"
@@ -240,6 +223,57 @@ def match(
     return info
 
 
+def _match_sequential(
+    database: Path,
+    work: Path,
+    opts: SfmOptions,
+    n_frames: int,
+    common: dict[str, Any],
+    info: dict[str, Any],
+) -> None:
+    """Each frame with its ``opts.overlap`` next ones, plus loop pairs (``opts.loop_pairs``:
+    pycolmap's visual index, or our bag of words matched as a pair list afterwards)."""
+    import pycolmap
+
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = opts.overlap
+    pairing.quadratic_overlap = opts.quadratic_overlap
+    pairing.num_threads = opts.num_threads
+    use_loops = opts.loop_detection and opts.loop_pairs != "none" and n_frames > opts.overlap + 1
+    t, c = time.perf_counter(), time.process_time()
+    if use_loops and opts.loop_pairs == "index":
+        index_file = work / "visual_index.bin"
+        info["visual_words"] = build_visual_index(database, index_file, opts)
+        info["index_seconds"] = round(time.perf_counter() - t, 3)
+        info["index_cpu_seconds"] = round(time.process_time() - c, 3)
+        pairing.loop_detection = True
+        pairing.loop_detection_period = opts.loop_period
+        pairing.loop_detection_num_images = opts.loop_num_images
+        pairing.vocab_tree_path = str(index_file)  # never the default: it downloads
+    info["loop_detection"] = opts.loop_pairs if use_loops else False
+    pycolmap.match_sequential(
+        database, **common, pairing_options=pairing, device=pycolmap.Device.cpu
+    )
+    if use_loops and opts.loop_pairs == "words":
+        t, c = time.perf_counter(), time.process_time()
+        pair_file = work / "loop_pairs.txt"
+        info["loop_pairs"] = write_loop_pairs(
+            database,
+            pair_file,
+            opts.loop_period,
+            opts.loop_num_images,
+            opts.overlap + 1,
+            opts.seed,
+        )
+        imported = pycolmap.ImportedPairingOptions()
+        imported.match_list_path = str(pair_file)
+        pycolmap.match_image_pairs(
+            database, **common, pairing_options=imported, device=pycolmap.Device.cpu
+        )
+        info["loop_seconds"] = round(time.perf_counter() - t, 3)
+        info["loop_cpu_seconds"] = round(time.process_time() - c, 3)
+
+
 def mapper_options(opts: SfmOptions, refine_camera: bool, relaxed: bool = False) -> Any:
     """IncrementalPipelineOptions for small gray frames; ``relaxed`` for the extension pass.
 
@@ -257,6 +291,8 @@ def mapper_options(opts: SfmOptions, refine_camera: bool, relaxed: bool = False)
     m.extract_colors = True  # the points' colours go into points.ply
     m.ba_global_frames_ratio = m.ba_global_points_ratio = opts.ba_global_ratio
     m.ba_global_max_num_iterations = opts.ba_global_max_iterations
+    m.mapper.ba_local_num_images = opts.ba_local_images
+    m.mapper.ba_global_ignore_redundant_points3D = opts.ba_prune_redundant
     m.ba_global_max_refinements = m.ba_local_max_refinements = opts.ba_refinements
     if opts.time_cap > 0:
         m.max_runtime_seconds = int(np.ceil(opts.time_cap))

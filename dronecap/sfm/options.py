@@ -9,6 +9,8 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 MATCHERS = ("auto", "sequential", "exhaustive")
+LOOP_PAIRS = ("words", "index", "none")
+MAPPERS = ("incremental", "global")
 CAMERA_MODES = ("auto", "fixed", "refine", "estimate")
 
 
@@ -39,7 +41,13 @@ class SfmOptions:
     exhaustive_below: int = 80  # "auto" matches every pair when there are fewer frames than this
     overlap: int = 10  # sequential: each frame is matched with this many following frames
     quadratic_overlap: bool = False  # sequential: pair i with i+2^k instead of i+1..i+overlap
-    loop_detection: bool = True  # sequential: add pairs retrieved by a visual index of the flight
+    loop_detection: bool = True  # sequential: add pairs of frames that look alike (loops)
+    # how loop pairs are found: "words" our bag of words (sfm/retrieval.py: every loop_period-th
+    # frame with its loop_num_images most alike frames over overlap+1 frames away); "index"
+    # pycolmap's visual index of the flight; "none". Words: 446-frame corridor 32 CPU-s with
+    # the matching of its pairs (the index alone took 55 s), ATE 0.15 % / rotation 0.36 deg;
+    # 124 frames ATE 0.12 % vs 0.15 %, 0.34 vs 0.48 deg (benchmarks/results/sfm_scaling.md)
+    loop_pairs: str = "words"
     loop_period: int = 5  # query the visual index with every this-many-th frame
     loop_num_images: int = 15  # frames retrieved per query
     visual_words: int = 512  # size of the flight's own visual vocabulary (upper bound)
@@ -75,6 +83,12 @@ class SfmOptions:
     ba_global_ratio: float = 1.5  # global BA when frames or points grew by this factor
     ba_global_max_iterations: int = 20  # solver iterations of one global BA (-1: COLMAP's)
     ba_refinements: int = 1  # BA + re-triangulation rounds, global and local (COLMAP 5 / 2)
+    ba_local_images: int = 6  # frames in a local bundle adjustment (COLMAP's default 6)
+    # global BA skips points that add no coverage of their frames (COLMAP's pruning option)
+    ba_prune_redundant: bool = False
+    # "incremental" (COLMAP's incremental mapper) or "global" (GLOMAP, guarded: a bent or
+    # incomplete global model is replaced by the incremental one; sfm/global_map.py)
+    mapper: str = "incremental"
     time_cap: float = 0.0  # s: stop mapping after this long and keep the model so far (0: none)
     extend: bool = True  # resume mapping from the largest model to absorb the others
     seed: int = 0  # random seed of the mapper (deterministic runs)
@@ -95,6 +109,10 @@ class SfmOptions:
             raise ValueError("init_max_gap must be >= 1 and init_min_tri_angle in (0, 90) deg")
         if not 0 < self.init_max_forward_motion <= 1:
             raise ValueError("init_max_forward_motion must be in (0, 1]")
+        if self.loop_pairs not in LOOP_PAIRS or self.mapper not in MAPPERS:
+            raise ValueError(f"loop_pairs must be one of {LOOP_PAIRS}, mapper one of {MAPPERS}")
+        if self.ba_local_images < 2:
+            raise ValueError(f"ba_local_images must be at least 2, got {self.ba_local_images}")
         if self.matcher not in MATCHERS:
             raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
         if self.max_features < 16:

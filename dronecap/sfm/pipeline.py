@@ -91,6 +91,7 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         "chosen_model": summary["best"] and str(Path(summary["best"]).relative_to(res.work)),
         "matching": match_info,
         "init_pair": summary.get("init_pair"),
+        "global_mapper": summary.get("global_mapper"),
         "bend_check": summary.get("bend_check"),
         "pose_jumps_remapped": summary.get("pose_jumps_remapped"),
         "keypoints_per_frame_median": float(np.median(list(keypoints.values())))
@@ -98,6 +99,7 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         else 0.0,
         "sift_first_octave": summary.get("first_octave"),
         "times": {k: round(v, 3) for k, v in res.times.items()},
+        "cpu_seconds": summary.get("cpu", {}),  # per COLMAP phase, all threads
     }
 
 

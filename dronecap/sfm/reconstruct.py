@@ -23,20 +23,21 @@ from typing import Any
 import numpy as np
 
 from dronecap.sfm.bend import rotation_disagreement
-from dronecap.sfm.camera_plan import CameraPlan, refined
+from dronecap.sfm.camera_plan import CameraPlan
 from dronecap.sfm.colmap_steps import (
     MIN_KEYPOINTS,
     extract_finer_when_sparse,
     incremental_map,
     match,
 )
-from dronecap.sfm.flights import flight_of, image_names
+from dronecap.sfm.flights import image_names
 from dronecap.sfm.initial_pair import FALLBACK_MIN_ANGLE, initial_pairs
 from dronecap.sfm.isolate import run_isolated
 from dronecap.sfm.links import separate_unlinked
 from dronecap.sfm.options import SfmOptions
-from dronecap.sfm.report import pose_jumps
+from dronecap.sfm.repair import jump_frames, refine_camera_of, remap_jumps
 
+GLOBAL_MIN_FRACTION = 0.99  # a global model is kept only with this share of the usable frames
 TINY_MODEL = 0.5  # our start registered under this fraction of usable frames: also try COLMAP's
 ALT_MODELS = "models_alt"  # folder of the models COLMAP started from its own initial pair
 PAIR_TRIES = 3  # our initial pairs tried in turn (best first) until one starts a non-tiny model
@@ -72,9 +73,12 @@ def colmap_job(
     root = Path(work)
     db, images = root / "database.db", root / "images"
     times: dict[str, float] = {}
-    out: dict[str, Any] = {"times": times, "models": {}, "best": None, "stopped": None}
+    cpu: dict[str, float] = {}  # CPU seconds (all threads of this process) per phase
+    out: dict[str, Any] = {"times": times, "cpu": cpu, "models": {}, "best": None, "stopped": None}
+    last = [None, time.process_time()]
 
     def phase(name: str, registered: int = 0) -> float:
+        _cpu_since(cpu, last, name)
         emit(("phase", name, registered))
         return time.perf_counter()
 
@@ -86,10 +90,82 @@ def colmap_job(
     def on_register(k: int) -> None:
         emit(("registered", k))
 
-    t = phase("map")
     opts = _capped(opts, deadline)
+    found = {}
+    if opts.mapper == "global":
+        t = phase("map global")
+        found = _global_first(out, root, opts, refine_camera, len(usable))
+        times["map_global"] = time.perf_counter() - t
+    if not found:
+        found = _incremental(
+            out, root, opts, refine_camera, on_register, len(usable), deadline, phase
+        )
+    out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
+    if not found:
+        out["stopped"] = NO_START
+        return out
+    size = _settle(
+        out, found, root, names, len(usable), opts, refine_camera, deadline, phase, on_register
+    )
+    if n_drones > 1:
+        t = phase("separate unlinked flights", size)
+        out["best"], out["flights"] = separate_unlinked(
+            db, images, root, Path(out["best"]), names, n_drones, opts, refine_camera, on_register
+        )
+        times["unlinked"] = time.perf_counter() - t
+    t = phase("bend check", size)
+    out["bend_check"] = rotation_disagreement(db, Path(out["best"]))
+    times["bend_check"] = time.perf_counter() - t
+    if refine_after:
+        t = phase("refine camera", size)
+        out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
+        times["refine_camera"] = time.perf_counter() - t
+    _cpu_since(cpu, last, None)
+    return out
+
+
+def _cpu_since(cpu: dict[str, float], last: list[Any], name: str | None) -> None:
+    """Add the CPU seconds since ``last`` = [phase, process_time] to that phase in ``cpu``;
+    ``name`` is the phase starting now (None: the end)."""
+    now = time.process_time()
+    if last[0] is not None:
+        cpu[last[0]] = round(cpu.get(last[0], 0.0) + now - last[1], 3)
+    last[0], last[1] = name, now
+
+
+def _global_first(
+    out: dict[str, Any], root: Path, opts: SfmOptions, refine_camera: bool, n_usable: int
+) -> dict[str, dict[str, float]]:
+    """GLOMAP's models when the guard accepts them (:mod:`global_map`), else {}; the guard's
+    record goes to ``out["global_mapper"]``."""
+    from dronecap.sfm.global_map import accept, global_map
+
+    found, record = global_map(
+        root / "database.db", root / "images", root / "global", opts, refine_camera
+    )
+    record["kept"] = accept(record, n_usable, GLOBAL_MIN_FRACTION)
+    out["global_mapper"] = record
+    out["init_pair"] = {"tried": [], "chosen": None}
+    return found if record["kept"] else {}
+
+
+def _incremental(
+    out: dict[str, Any],
+    root: Path,
+    opts: SfmOptions,
+    refine_camera: bool,
+    on_register: Callable[[int], None],
+    n_usable: int,
+    deadline: float | None,
+    phase: Callable[..., float],
+) -> dict[str, dict[str, float]]:
+    """Incremental mapping from our initial pairs, then from COLMAP's own start when ours
+    stays tiny (or ``opts.init_trials`` > 1). Returns the models found; fills ``out``'s
+    init_pair, times and, when the time cap passed, stopped."""
+    db, images, times = root / "database.db", root / "images", out["times"]
+    t = phase("map")
     pairs, info = initial_pairs(db, opts)
-    enough = TINY_MODEL * len(usable)
+    enough = TINY_MODEL * n_usable
     found, tried = map_from_pairs(db, images, root, opts, refine_camera, on_register, pairs, enough)
     out["init_pair"] = {
         **info,
@@ -106,25 +182,7 @@ def colmap_job(
         alt = incremental_map(db, images, root / ALT_MODELS, opts, refine_camera, on_register)
         times["map_colmap_start"] = time.perf_counter() - t
         found.update(alt)
-    out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
-    if not found:
-        out["stopped"] = NO_START
-        return out
-    size = _settle(
-        out, found, root, names, len(usable), opts, refine_camera, deadline, phase, on_register
-    )
-    if n_drones > 1:
-        t = phase("separate unlinked flights", size)
-        out["best"], out["flights"] = separate_unlinked(
-            db, images, root, Path(out["best"]), names, n_drones, opts, refine_camera, on_register
-        )
-        times["unlinked"] = time.perf_counter() - t
-    out["bend_check"] = rotation_disagreement(db, Path(out["best"]))
-    if refine_after:
-        t = phase("refine camera", size)
-        out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
-        times["refine_camera"] = time.perf_counter() - t
-    return out
+    return found
 
 
 def _front_end(
@@ -260,79 +318,27 @@ def map_from_pairs(
     return found, tried
 
 
-def jump_frames(model: Path, names: list[str]) -> list[int]:
-    """Frame indices (into ``names``) of ``model`` that :func:`pose_jumps` flags (each drone's
-    flight on its own)."""
-    import pycolmap
+def bar_events(bar: Any, total: int) -> Callable[[tuple[Any, ...]], None]:
+    """The handler of :func:`colmap_job`'s events for a progress ``bar`` (tqdm or
+    :class:`dronecap.progress.LogProgress`): the phase as its description, the frames
+    registered as its count and, while a phase registers frames, an ETA from that phase's own
+    rate (the front end's minutes would otherwise make the bar's own estimate wrong)."""
+    state = {"count": 0, "t0": time.monotonic(), "n0": 0}
 
-    rec = pycolmap.Reconstruction(model)
-    pos = {n: i for i, n in enumerate(names)}
-    regs = sorted((pos[rec.images[i].name], i) for i in rec.reg_image_ids())
-    centres = np.array([rec.images[i].projection_center() for _, i in regs]).reshape(-1, 3)
-    frames = np.array([f for f, _ in regs], dtype=np.int64)
-    flights = np.array([flight_of(names[f]) for f in frames], dtype=np.int64)
-    return pose_jumps(centres, frames, flights)
+    def on_event(ev: tuple[Any, ...]) -> None:
+        if ev[0] == "phase":
+            bar.set_description(f"sfm {ev[1]}")
+            bar.update(ev[2] - state["count"])
+            state.update(count=ev[2], t0=time.monotonic(), n0=ev[2])
+        elif ev[0] == "registered":
+            bar.update(ev[1])
+            state["count"] += ev[1]
+            done, dt = state["count"] - state["n0"], time.monotonic() - state["t0"]
+            if done > 0 and dt > 0:
+                left = max(total - state["count"], 0) * dt / done
+                bar.set_postfix(registered=f"{state['count']}/{total}", eta=f"{left:.0f}s")
 
-
-def remap_jumps(
-    database: Path,
-    image_dir: Path,
-    work: Path,
-    model: Path,
-    jumps: list[int],
-    names: list[str],
-    opts: SfmOptions,
-    refine_camera: bool,
-    on_register: Callable[[int], None],
-) -> tuple[str, dict[str, Any]]:
-    """Deregister the ``jumps`` frames of ``model`` and resume mapping (the extension pass's
-    relaxed thresholds) into ``work/unjumped``, so that they register again against the settled
-    points.
-
-    A frame registered early, against few points of distant structure, can take a pose that
-    fits its points but not the flight (a sideways shift traded for a rotation); later the
-    points are many and its PnP finds the right pose (Himax test_15: frame 19 re-registers on
-    its neighbours' path). Returns the model folder to keep (the new one when it has as many
-    frames and fewer jumps) and a record for the report.
-    """
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(model)
-    size = rec.num_reg_images()
-    for image_id in list(rec.reg_image_ids()):
-        if names.index(rec.images[image_id].name) in jumps:
-            rec.deregister_frame(rec.images[image_id].frame_id)
-    start = work / "unjumped_start"
-    start.mkdir(parents=True, exist_ok=True)
-    rec.write(start)
-    found = incremental_map(
-        database, image_dir, work / "unjumped", opts, refine_camera, on_register, start
-    )
-    record: dict[str, Any] = {"frames": jumps, "kept": False}
-    if found:
-        k = max(found, key=lambda j: found[j]["frames"])
-        left = jump_frames(Path(k), names)
-        if found[k]["frames"] >= size and len(left) < len(jumps):
-            record.update(kept=True, still_jumping=left)
-            return k, record
-    return str(model), record
-
-
-def refine_camera_of(model: Path, out: Path) -> str:
-    """Bundle-adjust ``model`` refining focal length(s) and distortion (not the principal
-    point), a self-calibrated camera with a second radial term (``camera_plan.refined``);
-    written to ``out``, whose path is returned."""
-    import pycolmap
-
-    rec = refined(pycolmap.Reconstruction(model))
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.refine_focal_length = True
-    ba.refine_extra_params = True
-    ba.refine_principal_point = False
-    pycolmap.bundle_adjustment(rec, ba)
-    out.mkdir(parents=True, exist_ok=True)
-    rec.write(out)
-    return str(out)
+    return on_event
 
 
 @dataclass
@@ -385,16 +391,7 @@ def reconstruct(
 
     bar = progress_bar(total=len(names), desc="sfm", unit="frame", disable=not progress)
 
-    count = [0]  # frames the bar shows; a phase restarts from the model it grows
-
-    def on_event(ev: tuple[Any, ...]) -> None:
-        if ev[0] == "phase":
-            bar.set_description(f"sfm {ev[1]}")
-            bar.update(ev[2] - count[0])
-            count[0] = ev[2]
-        elif ev[0] == "registered":
-            bar.update(ev[1])
-            count[0] += ev[1]
+    on_event = bar_events(bar, len(names))
 
     job = {"work": str(work), "names": names, "options": opts.to_dict()}
     job.update(

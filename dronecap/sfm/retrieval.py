@@ -78,10 +78,42 @@ def cross_flight_pairs(hist: np.ndarray, flights: np.ndarray, per_frame: int) ->
     return np.unique(pairs, axis=0)
 
 
-def write_cross_flight_pairs(database: Path, out_file: Path, per_frame: int, seed: int) -> int:
-    """Write COLMAP's pair list (``name1 name2`` lines) of the cross-flight pairs of the images
-    in ``database`` (flights from their folders, :mod:`dronecap.sfm.flights`); returns the
-    number of pairs."""
+def loop_pairs(
+    hist: np.ndarray, flights: np.ndarray, period: int, per_query: int, min_gap: int
+) -> np.ndarray:
+    """Loop-closure pairs (i, j), i < j, int [P, 2], within each flight: every ``period``-th
+    frame with its ``per_query`` most alike frames of its own flight at least ``min_gap``
+    frames away (closer ones are the sequential matcher's). Frames in flight order; ``hist``
+    from :func:`frame_histograms`. Cost: one [N/period, N] product."""
+    n = len(hist)
+    if n == 0:
+        return np.zeros((0, 2), np.int64)
+    queries = np.arange(0, n, period)
+    sim = hist[queries] @ hist.T  # [Q, N]
+    gap = np.abs(queries[:, None] - np.arange(n)[None, :])
+    sim[(gap < min_gap) | (flights[queries, None] != flights[None, :])] = -np.inf
+    k = min(per_query, n)
+    best = np.argpartition(-sim, k - 1, axis=1)[:, :k]
+    rows = np.repeat(queries, k)
+    cols = best.ravel()
+    ok = np.isfinite(sim[np.repeat(np.arange(len(queries)), k), cols])
+    pairs = np.sort(np.stack([rows[ok], cols[ok]], 1), axis=1)
+    return np.unique(pairs, axis=0)
+
+
+def write_loop_pairs(
+    database: Path, out_file: Path, period: int, per_query: int, min_gap: int, seed: int
+) -> int:
+    """Write COLMAP's pair list of :func:`loop_pairs` for the images in ``database``; returns
+    the number of pairs."""
+    names, flights, hist = _histograms_of(database, seed)
+    pairs = loop_pairs(hist, flights, period, per_query, min_gap)
+    out_file.write_text("".join(f"{names[a]} {names[b]}\n" for a, b in pairs))
+    return len(pairs)
+
+
+def _histograms_of(database: Path, seed: int) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Image names in name (flight) order, their flights and word histograms."""
     import pycolmap
 
     with pycolmap.Database.open(database) as db:
@@ -89,6 +121,14 @@ def write_cross_flight_pairs(database: Path, out_file: Path, per_frame: int, see
         descs = [np.asarray(db.read_descriptors(im.image_id).data) for im in images]
     names = [im.name for im in images]
     flights = np.array([flight_of(n) for n in names], np.int64)
-    pairs = cross_flight_pairs(frame_histograms(descs, seed), flights, per_frame)
+    return names, flights, frame_histograms(descs, seed)
+
+
+def write_cross_flight_pairs(database: Path, out_file: Path, per_frame: int, seed: int) -> int:
+    """Write COLMAP's pair list (``name1 name2`` lines) of the cross-flight pairs of the images
+    in ``database`` (flights from their folders, :mod:`dronecap.sfm.flights`); returns the
+    number of pairs."""
+    names, flights, hist = _histograms_of(database, seed)
+    pairs = cross_flight_pairs(hist, flights, per_frame)
     out_file.write_text("".join(f"{names[a]} {names[b]}\n" for a, b in pairs))
     return len(pairs)

@@ -1,0 +1,119 @@
+"""Long flights (issue 27): loop pairs from our bag of words, the guarded global mapper, video
+bundle-adjustment options, CPU seconds per phase and the mapping ETA."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dronecap.sfm.global_map import accept
+from dronecap.sfm.options import SfmOptions
+from dronecap.sfm.reconstruct import bar_events
+from dronecap.sfm.retrieval import loop_pairs
+
+
+def test_loop_pairs_find_the_revisit_and_skip_the_neighbours():
+    rng = np.random.default_rng(0)
+    hist = rng.random((60, 32)).astype(np.float32)
+    hist[50] = hist[2] + 0.01  # frame 50 sees what frame 2 saw
+    hist /= np.linalg.norm(hist, axis=1, keepdims=True)
+    flights = np.zeros(60, np.int64)
+    pairs = loop_pairs(hist, flights, period=1, per_query=1, min_gap=11)
+    assert [2, 50] in pairs.tolist()
+    assert np.all(pairs[:, 1] - pairs[:, 0] >= 11)  # the sequential matcher has the near ones
+    assert np.all(pairs[:, 0] < pairs[:, 1])
+
+
+def test_loop_pairs_stay_within_a_flight_and_query_every_period():
+    hist = np.eye(40, dtype=np.float32)[np.arange(40) % 10]  # every 10th frame looks alike
+    flights = np.repeat([0, 1], 20)
+    pairs = loop_pairs(hist, flights, period=5, per_query=3, min_gap=5)
+    assert len(pairs) > 0
+    assert np.all(flights[pairs[:, 0]] == flights[pairs[:, 1]])
+    assert np.all((pairs[:, 0] % 5 == 0) | (pairs[:, 1] % 5 == 0))  # a query in every pair
+    assert loop_pairs(hist[:0], flights[:0], 5, 3, 5).shape == (0, 2)
+
+
+def test_new_options_are_checked():
+    SfmOptions(loop_pairs="words", mapper="global", ba_local_images=4).validate()
+    for bad in ({"loop_pairs": "vocab"}, {"mapper": "hierarchical"}, {"ba_local_images": 1}):
+        with pytest.raises(ValueError):
+            SfmOptions(**bad).validate()
+
+
+def test_the_global_guard_refuses_bent_or_incomplete_models():
+    straight = {"pairs": 99, "bent": False}
+    assert accept({"frames": 100, "bend_check": straight}, 100, 0.99)
+    assert not accept({"frames": 90, "bend_check": straight}, 100, 0.99)
+    assert not accept({"frames": 100, "bend_check": {"pairs": 99, "bent": True}}, 100, 0.99)
+    assert not accept({"frames": 100, "bend_check": {"pairs": 0, "bent": False}}, 100, 0.99)
+    assert not accept({"frames": 0, "kept": False}, 100, 0.99)
+
+
+class FakeBar:
+    def __init__(self):
+        self.n, self.desc, self.postfix = 0, "", {}
+
+    def update(self, k):
+        self.n += k
+
+    def set_description(self, d):
+        self.desc = d
+
+    def set_postfix(self, **kv):
+        self.postfix = kv
+
+
+def test_mapping_progress_counts_frames_and_gives_an_eta():
+    bar = FakeBar()
+    on_event = bar_events(bar, 10)
+    on_event(("phase", "extract", 0))
+    on_event(("phase", "map", 0))
+    on_event(("registered", 2))
+    on_event(("registered", 1))
+    assert bar.n == 3 and bar.desc == "sfm map"
+    assert bar.postfix["registered"] == "3/10"
+    assert bar.postfix["eta"].endswith("s")
+    on_event(("phase", "extend", 8))  # a phase restarts from the model it grows
+    assert bar.n == 8
+
+
+@pytest.fixture(scope="module")
+def corridor(tmp_path_factory):
+    """A short simulated corridor flight, ingested (about 50 kept frames)."""
+    from dronecap.cli import main as cli
+
+    d = tmp_path_factory.mktemp("corridor")
+    assert cli(["-q", "simulate", "--workdir", str(d), "--frames", "100", "--seed", "11"]) == 0
+    assert cli(["-q", "ingest", "--workdir", str(d), str(d / "flight.mp4")]) == 0
+    return d
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {"loop_pairs": "words", "ba_prune_redundant": True, "ba_global_ratio": 3.0},
+        {"mapper": "global"},
+    ],
+)
+def test_long_flight_options_pose_a_short_corridor(corridor, tmp_path, overrides):
+    from dronecap.sfm.pipeline import run_sfm
+
+    opts = SfmOptions(exhaustive_below=0, **overrides)
+    rep = run_sfm(
+        corridor / "frames.h5",
+        tmp_path / "posed.h5",
+        tmp_path / "sfm",
+        opts,
+        corridor / "flight.json",
+        progress=False,
+    )
+    assert rep["registration_rate"] >= 0.99
+    assert rep["accuracy"]["ate_percent"] < 1.0
+    assert not rep["bend_check"]["bent"]
+    assert rep["cpu_seconds"]["map" if "map" in rep["cpu_seconds"] else "map global"] > 0
+    if overrides.get("loop_pairs") == "words":
+        assert rep["matching"]["loop_detection"] == "words"
+    if overrides.get("mapper") == "global":
+        assert rep["global_mapper"]["frames"] > 0  # tried; kept only when the guard agrees
