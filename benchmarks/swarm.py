@@ -225,9 +225,12 @@ def table(rows: list[dict]) -> list[str]:
         focal_s = f"{max(abs(f) for f in focal):.2f} ({' '.join(f'{f:+.2f}' for f in focal)})"
         one = f"{'yes' if r['one_model'] else 'NO'} ({r['models']})" if "one_model" in r else "–"
         sim, ing, sfm = (r.get(k) or {} for k in ("simulate", "ingest", "sfm"))
+        scale = fmt(r.get("scale_err_pct"))
+        if r.get("scale_err_pct") is not None:
+            scale += f" (gravity {fmt(r.get('gravity_deg'))}°)"
         cells = [
             r["drones"], r["variant"], r.get("kept", "–"), reg, one, fmt(r.get("ate_pct")),
-            fmt(r.get("rot_deg")), focal_s if focal else "–", fmt(r.get("scale_err_pct")),
+            fmt(r.get("rot_deg")), focal_s if focal else "–", scale,
             fmt(sim.get("wall_s"), ".0f"), fmt(ing.get("wall_s"), ".0f"),
             fmt(sfm.get("wall_s"), ".0f"), fmt(sfm.get("cpu_s"), ".0f"),
             sfm.get("load", "–"), verdict(r), r.get("error", ""),
@@ -267,7 +270,7 @@ def write(rows: list[dict], work: Path) -> None:
 
 
 def plot_tracks(rows: list[dict]) -> None:
-    """Top views: a panel per measured row (N down, variants across), truth (line) and aligned
+    """Top views: a panel per measured row (variants down, N across), truth (line) and aligned
     estimate (dots) in one colour per drone."""
     import matplotlib
 
@@ -279,12 +282,12 @@ def plot_tracks(rows: list[dict]) -> None:
         return
     ns = sorted({r["drones"] for r in done})
     vs = [v for v in VARIANTS if any(r["variant"] == v for r in done)]
-    fig, axes = plt.subplots(len(ns), len(vs), figsize=(4.2 * len(vs), 3.2 * len(ns)))
-    axes = np.array(axes).reshape(len(ns), len(vs))
+    fig, axes = plt.subplots(len(vs), len(ns), figsize=(7 * len(ns), 1.9 * len(vs) + 0.6))
+    axes = np.array(axes).reshape(len(vs), len(ns))
     for ax in axes.flat:
         ax.set_axis_off()
     for r in done:
-        ax = axes[ns.index(r["drones"]), vs.index(r["variant"])]
+        ax = axes[vs.index(r["variant"]), ns.index(r["drones"])]
         ax.set_axis_on()
         for d, (est, true) in enumerate(r["tracks"]):
             t, e = np.array(true).reshape(-1, 2), np.array(est).reshape(-1, 2)
