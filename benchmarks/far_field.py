@@ -141,9 +141,18 @@ def main() -> None:
     for r in table:
         lines.append(f"| {r['scene']} | {r['variant']} | {r['far_field']} | {r['psnr']:.2f} | "
                      f"{r['ssim']:.3f} | {r['ms']:.0f} | {r['load']} |")  # fmt: skip
-    text = "\n".join(lines) + "\n"
+    scenes = " ".join(f"--scene {item}" for item in args.scene)
+    text = (
+        "# The far field: default `dronecap train` with the far field on and off\n\n"
+        f"Command: `nice -n 10 .venv/bin/python benchmarks/far_field.py --work {args.work} "
+        f"{scenes} --variants {' '.join(args.variants)} --steps {args.steps}` (1 thread per "
+        "run; finished runs reused).\n\n" + "\n".join(lines) + "\n\nFigure: `far_field.png`.\n"
+    )
     print(text)
-    (RESULTS / "far_field_table.md").write_text(text)
+    out = RESULTS / "far_field.md"
+    old = out.read_text() if out.exists() else ""
+    notes = old[old.index("\n## Notes") :] if "\n## Notes" in old else ""  # kept when re-run
+    out.write_text(text + notes)
 
 
 if __name__ == "__main__":

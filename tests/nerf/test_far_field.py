@@ -187,3 +187,12 @@ def test_a_background_at_infinity_is_learned(make_cube, kind):
     assert math.isfinite(scores["none"])
     assert scores[kind] > scores["none"] + 8, scores
     assert scores[kind] > 18, scores  # 60 steps: ~21.8 dB (sh) against 8.6 dB
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_fp16_storage_trains_with_a_far_field(cube_rgb, kind):
+    tr = Trainer(
+        _cfg(kind, precision="fp16", mlp_dtype="fp32"), dataclasses.replace(cube_rgb, alpha=None)
+    )
+    assert not any(log["skipped"] for log in tr.train(5))
+    assert tr.weights_finite() and torch.isfinite(tr.field.far(_unit(16))).all()
