@@ -82,8 +82,8 @@ class TrainConfig:
     photometric_lr_ratio: float = 1.0  # lr of the photometric parameters over the model's lr
     # --- what a ray sees after it leaves the box (nerf/far_field.py) ------------------------
     # "none" (the fixed background), "sh" (16 SH coefficients per channel), "grid" (a 16 x 32
-    # equirectangular map per channel) or "auto": none for images with alpha (their
-    # background is known), the far field for footage without alpha. Resolved once.
+    # equirectangular map per channel) or "auto": none for images with alpha or a declared
+    # background colour (known), the far field for footage without either. Resolved once.
     far_field: str = "auto"
     # --- data as the paper describes it (resolving against a dataset replaces them by the
     #     dataset's values; the GAP9 cost model uses these when no dataset is given) ------------

@@ -221,7 +221,7 @@ def resolve(
     reasons["mlp_dtype"] = _why_mlp_dtype(cfg, products)
     alpha = ds.alpha is not None
     photometric = {k: _photometric(getattr(cfg, k), alpha) for k in PHOTOMETRIC_FIELDS}
-    photometric["far_field"] = _far_field(cfg.far_field, alpha)
+    photometric["far_field"] = _far_field(cfg.far_field, alpha, ds.background is not None)
     reasons |= {k: why for k, (_, why) in photometric.items()}
     config = cfg.replace(
         n_max=n_max, channels=ds.channels, resolution=w, train_images=n_train, mlp_dtype=products
@@ -239,13 +239,16 @@ def _photometric(mode: str, alpha: bool) -> tuple[str, str]:
     return "on", "camera footage (no alpha channel): its exposure and lens shade the frames"
 
 
-def _far_field(mode: str, alpha: bool) -> tuple[str, str]:
+def _far_field(mode: str, alpha: bool, background: bool) -> tuple[str, str]:
     """(far field kind, why) of a ``far_field`` value ``mode`` for a dataset with
-    (``alpha``) or without an alpha channel (:mod:`nerf.far_field`)."""
+    (``alpha``) or without an alpha channel, that declares its ``background`` colour or not
+    (:mod:`nerf.far_field`)."""
     if mode != "auto":
         return mode, "set by the configuration"
     if alpha:
         return "none", "the dataset has an alpha channel: its background is known (box only)"
+    if background:
+        return "none", "the dataset declares its background colour (box only)"
     return AUTO_FAR_FIELD, (
         "camera footage (no alpha channel): what lies past the box is learned per direction"
     )

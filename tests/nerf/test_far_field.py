@@ -102,11 +102,15 @@ def test_resolver_chooses_from_the_data(cube_rgb):
     with_alpha = resolve(_cfg("auto"), cube_rgb)
     assert with_alpha.config.far_field == "none"
     assert "alpha" in with_alpha.reasons["far_field"]
-    footage = resolve(_cfg("auto"), dataclasses.replace(cube_rgb, alpha=None))
+    footage = resolve(_cfg("auto"), dataclasses.replace(cube_rgb, alpha=None, background=None))
     assert footage.config.far_field in KINDS
     assert "camera footage" in footage.reasons["far_field"]
     assert any(line.startswith("far_field = ") for line in choice_lines(footage, False))
-    forced = resolve(_cfg("none"), dataclasses.replace(cube_rgb, alpha=None))
+    declared = resolve(
+        _cfg("auto"), dataclasses.replace(cube_rgb, alpha=None, background=(0.6,) * 3)
+    )
+    assert declared.config.far_field == "none" and "declares" in declared.reasons["far_field"]
+    forced = resolve(_cfg("none"), dataclasses.replace(cube_rgb, alpha=None, background=None))
     assert forced.config.far_field == "none"
     assert forced.reasons["far_field"] == "set by the configuration"
     assert problems(_cfg("sky"))  # an unknown kind is refused
