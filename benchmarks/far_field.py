@@ -124,12 +124,15 @@ def main() -> None:
     p.add_argument("--scene", action="append", required=True, help="NAME=DATASET.h5")
     p.add_argument("--variants", nargs="+", default=["none", "auto"])
     p.add_argument("--steps", type=int, default=1500)
+    p.add_argument("--no-train", action="store_true", help="tabulate finished runs only")
     args = p.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     table = []
     for item in args.scene:
         name, path = item.split("=", 1)
         for v in args.variants:
+            if args.no_train and not (args.work / f"{name}_{v}" / "metrics.json").exists():
+                continue
             row = {"scene": name, "variant": v, **train(Path(path), args.work / f"{name}_{v}",
                                                            v, args.steps)}  # fmt: skip
             table.append(row)
