@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from dronecap.gap9.platform import Numerics
 from dronecap.nerf import levels
-from dronecap.nerf.config import TrainConfig
+from dronecap.nerf.config import FAR_GRID_COLS, FAR_GRID_ROWS, FAR_SH_DEGREE, TrainConfig
 
 # --- multiresolution hash encoding, per level and per cell corner ----------------------------
 HASH_LEVEL_OPS = 12  # scale x by res (3 mul), floor (3), fraction (3 sub), 1 - fraction (3 sub)
@@ -84,6 +84,7 @@ class Counts:
     density_mlp_params: int
     color_mlp_params: int
     grid_cells: int  # grid_res^3
+    far_field_params: int = 0  # the far field's values (nerf.far_field; 0 without one)
 
     @property
     def mlp_params(self) -> int:
@@ -93,7 +94,7 @@ class Counts:
     @property
     def params(self) -> int:
         """All trainable values."""
-        return self.hash_params + self.mlp_params
+        return self.hash_params + self.mlp_params + self.far_field_params
 
 
 def counts(cfg: TrainConfig, hash_rows: str = "paper") -> Counts:
@@ -109,7 +110,33 @@ def counts(cfg: TrainConfig, hash_rows: str = "paper") -> Counts:
         density_mlp_params=sum(a * b for a, b in layers["density"]),
         color_mlp_params=sum(a * b for a, b in layers["color"]),
         grid_cells=cfg.grid_res**3,
+        far_field_params=far_field_params(cfg.far_field, cfg.channels),
     )
+
+
+def far_field_params(kind: str, channels: int) -> int:
+    """Learned values of a far field (:mod:`dronecap.nerf.far_field`) of ``kind`` with
+    ``channels`` channels: 16 C for "sh", 16 x 32 C for "grid", 0 for "none" and for an
+    unresolved "auto" (as the trainer's Field builds it)."""
+    per_channel = {"sh": FAR_SH_DEGREE**2, "grid": FAR_GRID_ROWS * FAR_GRID_COLS}
+    return per_channel.get(kind, 0) * channels
+
+
+def far_field_ops_per_ray(kind: str, channels: int) -> int:
+    """Forward + backward ops of one ray's far-field colour and its compositing
+    ``T_exit * far(d)``, a multiply-add 2 ops and a sigmoid 4.
+
+    sh: the 16 basis values (~30 ops), a 16-term dot product (32), the sigmoid (4) and
+    compositing (2) per channel; backward a 16-term gradient scatter (32) and 6 per channel.
+    grid: the direction to map coordinates (atan2 + asin, ~40 ops), 4 taps and 3 lerps (10),
+    sigmoid (4) and compositing (2) per channel; backward 4 weighted scatters (8) and 6.
+    """
+    n = FAR_SH_DEGREE**2
+    if kind == "sh":
+        return 30 + channels * (2 * n + 4 + 2) + channels * (2 * n + 6)
+    if kind == "grid":
+        return 40 + channels * (10 + 4 + 2) + channels * (8 + 6)
+    return 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -247,8 +274,10 @@ def ops_per_sample(cfg: TrainConfig) -> dict[str, dict[str, int]]:
 
 
 def loss_ops_per_ray(cfg: TrainConfig) -> int:
-    """Huber loss forward + backward per ray (per channel)."""
-    return (HUBER_FWD_OPS + HUBER_BWD_OPS) * cfg.channels
+    """Huber loss forward + backward per ray (per channel), and the far field's colour behind
+    the ray when the model has one (:func:`far_field_ops_per_ray`)."""
+    far = far_field_ops_per_ray(cfg.far_field, cfg.channels)
+    return (HUBER_FWD_OPS + HUBER_BWD_OPS) * cfg.channels + far
 
 
 def optimizer_ops(c: Counts, ops_per_value: float) -> float:

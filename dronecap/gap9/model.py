@@ -205,7 +205,8 @@ def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
     """L3 <-> L2 bytes per tile, per Adam step, per occupancy update.
 
     tile: hash params read (fp32) for the forward gather + hash gradients read and written
-    (fp32 accumulation) in the backward, the same for the MLP weights, the occupancy flags the
+    (fp32 accumulation) in the backward, the same for the MLP and far-field weights (the
+    latter only when the model has a far field), the occupancy flags the
     rays test (``march_steps`` per ray) and the target pixels. adam: read params, gradients,
     both moments; write params and moments; zero the gradients. occupancy update: the hash
     params once per tile of queries, the grid's EMA read and written, its flags written;
@@ -222,6 +223,8 @@ def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
         "occupancy_flags": rays * cfg.march_steps * n.grid_flag_bytes,
         "pixels": rays * cfg.channels * n.image_bytes_per_pixel,
     }
+    if c.far_field_params:  # the far field behind the rays (nerf.far_field), like the MLPs
+        tile["far_field_params_and_grads"] = c.far_field_params * per_param_tile
     tile["total"] = sum(tile.values())
     adam = c.params * (
         n.param_bytes + 2 * n.grad_bytes + 2 * n.moment_bytes + n.param_bytes + 2 * n.moment_bytes
@@ -335,7 +338,7 @@ _CONFIG_FIELDS = (
     "images_per_step", "resolution", "batch_samples", "tile_samples", "levels", "features",
     "log2_hashmap", "n_min", "n_max", "hidden", "density_layers", "color_layers", "geo_features",
     "sh_degree", "channels", "grid_res", "grid_warmup", "grid_every", "march_steps", "steps",
-    "train_images", "precision",
+    "train_images", "precision", "far_field",
 )  # fmt: skip
 
 

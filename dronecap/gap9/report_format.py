@@ -32,9 +32,14 @@ def format_report(report: dict) -> str:
         f"{cfg['levels']} x {cfg['features']}",
     ))  # fmt: skip
     rows.append(("images/step, resolution", f"{cfg['images_per_step']}, {cfg['resolution']} px"))
-    rows.append(
-        ("params (hash + MLP)", f"{r['counts']['hash_params']} + {r['counts']['mlp_params']}")
-    )
+    counts, far = r["counts"], r["counts"].get("far_field_params", 0)
+    params = f"{counts['hash_params']} + {counts['mlp_params']}"
+    if far:  # a far field (nerf.far_field): its kind and values
+        rows.append(
+            (f"params (hash + MLP + far field {cfg.get('far_field')})", f"{params} + {far}")
+        )
+    else:
+        rows.append(("params (hash + MLP)", params))
     section("memory (untiled, Table II accounting)")
     for k, v in mem["untiled"].items():
         rows.append((k, format_bytes(v)))

@@ -80,6 +80,11 @@ class TrainConfig:
     learn_exposure: str = "auto"  # a log-gain per training frame and channel, mean fixed at 0
     learn_vignetting: str = "auto"  # 1 + k1 r^2 + k2 r^4 + k3 r^6 about the principal point
     photometric_lr_ratio: float = 1.0  # lr of the photometric parameters over the model's lr
+    # --- what a ray sees after it leaves the box (nerf/far_field.py) ------------------------
+    # "none" (the fixed background), "sh" (16 SH coefficients per channel), "grid" (a 16 x 32
+    # equirectangular map per channel) or "auto": none for images with alpha or a declared
+    # background colour (known), the far field for footage without either. Resolved once.
+    far_field: str = "auto"
     # --- data as the paper describes it (resolving against a dataset replaces them by the
     #     dataset's values; the GAP9 cost model uses these when no dataset is given) ------------
     resolution: int = 160  # image side in pixels
@@ -278,12 +283,18 @@ PRECISIONS = ("fp32", "fp16", "bf16")
 MLP_DTYPES = ("auto", "fp32", "bf16")
 PHOTOMETRIC_MODES = ("auto", "on", "off")  # learn_exposure, learn_vignetting
 PHOTOMETRIC_FIELDS = ("learn_exposure", "learn_vignetting")
+FAR_FIELD_MODES = ("auto", "none", "sh", "grid")
+FAR_SH_DEGREE = 4  # far_field "sh": bands 0..3, 16 coefficients per channel
+FAR_GRID_ROWS, FAR_GRID_COLS = 16, 32  # far_field "grid": equirectangular logits per channel
+# fields whose "auto" the dataset decides (resolve.py): a resumed model keeps its value
+DATA_DECIDED_FIELDS = (*PHOTOMETRIC_FIELDS, "far_field")
 # fields added after configs were first written: the value a config written without them was
 # trained with (the resolved configs in run.json and checkpoints; see resolve.Resolved)
 LEGACY_VALUES: dict[str, Any] = {
     "learn_exposure": "off",
     "learn_vignetting": "off",
     "grid_carve": False,
+    "far_field": "none",
 }
 
 
@@ -320,6 +331,9 @@ def problems(cfg: TrainConfig) -> list[str]:
         if getattr(cfg, name) not in PHOTOMETRIC_MODES:
             modes = ", ".join(PHOTOMETRIC_MODES)
             out.append(f"{name} must be one of {modes}, got {getattr(cfg, name)!r}")
+    if cfg.far_field not in FAR_FIELD_MODES:
+        modes = ", ".join(FAR_FIELD_MODES)
+        out.append(f"far_field must be one of {modes}, got {cfg.far_field!r}")
     return out
 
 

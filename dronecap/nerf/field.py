@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .config import TrainConfig, mlp_dtype
+from .far_field import make_far_field
 from .hashgrid import HashGrid
 from .sh import sh_dim, sh_encode
 
@@ -55,8 +56,9 @@ class Field(nn.Module):
 
     Args:
         cfg: levels, features, log2_hashmap, n_min, n_max, hidden, layer counts, geo_features,
-            sh_degree, precision; a resolved config (``n_max`` is used as it stands, see
-            :mod:`nerf.resolve`).
+            sh_degree, precision, far_field; a resolved config (``n_max`` and ``far_field`` are
+            used as they stand, see :mod:`nerf.resolve`; an unresolved "auto" far field builds
+            none).
         channels: colour channels C of the head (1 or 3, or any other count).
         aabb: [2, 3] bounds in scene units; points are normalised to the unit cube over it.
         backend: hash-grid backend ("auto", "cpp", "torch", "compile").
@@ -81,6 +83,8 @@ class Field(nn.Module):
         self.sh_degree = cfg.sh_degree
         n_in = cfg.geo_features + sh_dim(cfg.sh_degree)
         self.color_mlp = _mlp(n_in, cfg.hidden, cfg.color_layers, channels)
+        kind = cfg.far_field if cfg.far_field in ("sh", "grid") else "none"
+        self.far = make_far_field(kind, channels)  # what lies past the box (nerf.far_field)
         a = torch.as_tensor(np.asarray(aabb), dtype=torch.float32)
         self.register_buffer("aabb_min", a[0].clone(), persistent=False)
         self.register_buffer("aabb_size", (a[1] - a[0]).clone(), persistent=False)
@@ -160,10 +164,20 @@ class Field(nn.Module):
         directions [N, sh_degree^2] (:meth:`dir_encoding`)."""
         return torch.sigmoid(self._run(self.color_mlp, torch.cat([geo, dir_enc], -1)))
 
+    def behind(self, dirs: Tensor, background: Tensor) -> Tensor:
+        """What a ray sees when it leaves the box: the far field's colour [R, C] of its unit
+        direction ``dirs`` [R, 3] when the model has one, else ``background`` ([C] or [R, C],
+        the fixed background)."""
+        return background if self.far is None else self.far(dirs)
+
+    def far_parameters(self) -> list[nn.Parameter]:
+        """The far field's parameters (none without one; trained with the hash table)."""
+        return [] if self.far is None else list(self.far.parameters())
+
     def mlp_parameters(self) -> list[nn.Parameter]:
         """The MLP weights (the ones that get L2 weight decay)."""
         return [*self.density_mlp.parameters(), *self.color_mlp.parameters()]
 
     def parameter_count(self) -> int:
-        """Trainable parameters (hash table + MLPs)."""
+        """Trainable parameters (hash table + MLPs + far field)."""
         return sum(p.numel() for p in self.parameters())

@@ -65,10 +65,11 @@ def render_rays(
     Marches and evaluates ``RENDER_ROUND`` samples per ray per round and stops rays whose
     transmittance fell below ``min_transmittance`` (early termination: what lies behind an
     opaque surface is not evaluated); the colour MLP runs only for samples of weight above
-    ``min_weight``. ``background`` is [C] or [R, C]. Samples sit where an unlimited march
-    would put them, so the result differs only by the dropped tail (< ``min_transmittance``)
-    and the skipped weights (< ``min_weight`` each): on lego models, 71-79 dB (PSNR) from the
-    exact render (benchmarks/train_speed.py).
+    ``min_weight``. ``background`` is [C] or [R, C]; a model with a far field shows that
+    instead (:mod:`nerf.far_field`: ``C_box + T_exit * far(d)``). Samples sit where an
+    unlimited march would put them, so the result differs only by the dropped tail
+    (< ``min_transmittance``) and the skipped weights (< ``min_weight`` each): on lego models,
+    71-79 dB (PSNR) from the exact render (benchmarks/train_speed.py).
     """
     field = vol.field
     n, c, dev = origins.shape[0], field.channels, origins.device
@@ -106,7 +107,7 @@ def render_rays(
         trans[alive] = tr_alive
         alive = alive[(tr_alive > min_transmittance) & (s.t_resume < t_end)]
     bg = background.expand(n, c) if background.ndim == 1 else background
-    return (rgb + trans[:, None] * bg).clamp(0, 1)
+    return (rgb + trans[:, None] * field.behind(dirs, bg)).clamp(0, 1)
 
 
 @torch.no_grad()

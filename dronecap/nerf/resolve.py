@@ -25,6 +25,7 @@ from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
 from .config import (
+    DATA_DECIDED_FIELDS,
     LEGACY_VALUES,
     PHOTOMETRIC_FIELDS,
     SIZED_FIELDS,
@@ -34,6 +35,8 @@ from .config import (
     problems,
 )
 from .sizing import MemoryFn, SceneFacts, size_to_scene
+
+AUTO_FAR_FIELD = "sh"  # the far field "auto" picks for footage without alpha
 
 
 @dataclass(frozen=True, eq=False)
@@ -161,7 +164,7 @@ def choice_lines(resolved: Resolved, sized: bool) -> list[str]:
     fields = ("channels", *SIZED_FIELDS) if sized else ()
     lines = [f"sized: {k} = {getattr(cfg, k)}: {why.get(k, '')}" for k in fields]
     return lines + [
-        f"{k} = {getattr(cfg, k)}: {why.get(k, '')}" for k in ("mlp_dtype", *PHOTOMETRIC_FIELDS)
+        f"{k} = {getattr(cfg, k)}: {why.get(k, '')}" for k in ("mlp_dtype", *DATA_DECIDED_FIELDS)
     ]
 
 
@@ -218,6 +221,7 @@ def resolve(
     reasons["mlp_dtype"] = _why_mlp_dtype(cfg, products)
     alpha = ds.alpha is not None
     photometric = {k: _photometric(getattr(cfg, k), alpha) for k in PHOTOMETRIC_FIELDS}
+    photometric["far_field"] = _far_field(cfg.far_field, alpha, ds.background is not None)
     reasons |= {k: why for k, (_, why) in photometric.items()}
     config = cfg.replace(
         n_max=n_max, channels=ds.channels, resolution=w, train_images=n_train, mlp_dtype=products
@@ -233,6 +237,21 @@ def _photometric(mode: str, alpha: bool) -> tuple[str, str]:
     if alpha:
         return "off", "the dataset has an alpha channel (a synthetic composite: no camera to model)"
     return "on", "camera footage (no alpha channel): its exposure and lens shade the frames"
+
+
+def _far_field(mode: str, alpha: bool, background: bool) -> tuple[str, str]:
+    """(far field kind, why) of a ``far_field`` value ``mode`` for a dataset with
+    (``alpha``) or without an alpha channel, that declares its ``background`` colour or not
+    (:mod:`nerf.far_field`)."""
+    if mode != "auto":
+        return mode, "set by the configuration"
+    if alpha:
+        return "none", "the dataset has an alpha channel: its background is known (box only)"
+    if background:
+        return "none", "the dataset declares its background colour (box only)"
+    return AUTO_FAR_FIELD, (
+        "camera footage (no alpha channel): what lies past the box is learned per direction"
+    )
 
 
 def _why_mlp_dtype(cfg: TrainConfig, products: str) -> str:

@@ -35,7 +35,7 @@ from dronecap.files import atomic_output, sha256_file
 
 from . import budget
 from .budget import BudgetConfig
-from .config import PHOTOMETRIC_FIELDS, TrainConfig, config_from_dict
+from .config import DATA_DECIDED_FIELDS, TrainConfig, config_from_dict
 from .resolve import Resolved, choice_lines, resolve
 from .sizing import MemoryFn
 
@@ -135,7 +135,7 @@ def _resume(
     auto: tuple[str, ...] = (),
 ) -> Trainer:
     """The trainer of checkpoint ``source`` set to continue to ``wanted`` on ``ds`` (read
-    from ``ds_path``). Fields in ``auto`` (photometric fields the configuration left to
+    from ``ds_path``). Fields in ``auto`` (data-decided fields the configuration left to
     "auto") keep the resumed model's value: a model trained before they existed goes on
     without them.
 
@@ -279,7 +279,7 @@ def _start(
         raise InputError("is a file, expected a run folder", out)
     out.mkdir(parents=True, exist_ok=True)  # a read-only or full target fails before training
     ckpt = out / CHECKPOINT
-    auto = tuple(k for k in PHOTOMETRIC_FIELDS if getattr(cfg, k) == "auto")
+    auto = tuple(k for k in DATA_DECIDED_FIELDS if getattr(cfg, k) == "auto")
     if resume_from is not None:
         source = Path(resume_from)
         source = source / CHECKPOINT if source.is_dir() else source

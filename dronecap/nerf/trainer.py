@@ -84,7 +84,7 @@ class Trainer:
         self.field = Field(cfg, scene.channels, scene.aabb, backend).to(self.device)
         on = {"exposure": cfg.learn_exposure == "on", "vignetting": cfg.learn_vignetting == "on"}
         self.photometric = Photometric(cfg.train_images, scene.channels, **on).to(self.device)
-        table = [self.field.encoding.table]
+        table = [self.field.encoding.table, *self.field.far_parameters()]  # no weight decay
         groups = [
             {"params": table, "weight_decay": 0.0},
             {"params": self.field.mlp_parameters(), "weight_decay": cfg.weight_decay},
@@ -205,9 +205,9 @@ class Trainer:
             sigma, geo = field.geometry(pts)
             return field.color_from_encoding(geo, dir_enc[ri]), sigma
 
-        color, _, _ = render_packed(
-            s.t_starts, s.t_ends, s.ray_indices, origins.shape[0], color_sigma, bg
-        )
+        behind = field.behind(dirs, bg)  # the far field or the fixed background
+        s_args = (s.t_starts, s.t_ends, s.ray_indices, origins.shape[0])
+        color, _, _ = render_packed(*s_args, color_sigma, behind)
         return color
 
     def accumulate_gradients(self, rays: RayBatch, s: Samples) -> float:
@@ -303,8 +303,8 @@ class Trainer:
     # ----------------------------------------------------------------------------------------
     # weights and state
     def model_weights(self) -> dict[str, np.ndarray]:
-        """Hash table and MLP weights (float32 numpy), exactly what FedAvg averages: never
-        the photometric model (a drone's own frames' exposures and its lens)."""
+        """Hash table, MLP and far-field weights (float32 numpy), exactly what FedAvg averages:
+        never the photometric model (a drone's own frames' exposures and its lens)."""
         return {
             k: v.detach().cpu().float().numpy().copy() for k, v in self.field.state_dict().items()
         }
@@ -446,5 +446,5 @@ class Trainer:
         return evaluate_views(self.render, test, self.scene.background, None, progress, True)
 
     def parameter_count(self) -> int:
-        """Trainable parameters (hash table + MLPs)."""
+        """Trainable parameters (hash table + MLPs + far field)."""
         return self.field.parameter_count()

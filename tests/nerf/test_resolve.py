@@ -22,7 +22,7 @@ def test_resolve_fills_in_what_the_data_decides(cube_rgb):
     assert r.config.n_max == math.ceil(2 / (1.5 / focal)) == 38
     assert (r.config.channels, r.config.resolution, r.config.train_images) == (3, 24, 9)
     assert set(r.reasons) == {"n_max", "channels", "resolution", "train_images", "mlp_dtype",
-                              "learn_exposure", "learn_vignetting"}  # fmt: skip
+                              "learn_exposure", "learn_vignetting", "far_field"}  # fmt: skip
     assert "auto_n_max" in r.reasons["n_max"]
     # a fixed n_max stays, and says so
     assert resolve(preset("test"), cube_rgb).config.n_max == 256

@@ -1,0 +1,97 @@
+"""The far field: what a ray sees after it leaves the scene box, learned as a function of its
+direction alone (content at infinity, an environment map).
+
+The trainer models a box. A ray that leaves it used to composite onto a fixed background (the
+dataset's, black for footage without alpha); real flights see walls and sky beyond any box,
+and an object shot on white without alpha would have to paint its white inside the box. With a
+far field the ray colour is ``C = C_box + T_exit * far(d)``: ``T_exit`` the transmittance left
+when the ray leaves the box (1 for a ray that misses it), ``d`` its unit direction.
+
+Two forms (``TrainConfig.far_field``):
+
+- ``"sh"``: per channel the real spherical-harmonic coefficients of bands 0..3 (16 values,
+  :mod:`nerf.sh`) through a sigmoid: smooth, 16 C parameters.
+- ``"grid"``: per channel an equirectangular map of :data:`GRID_ROWS` x :data:`GRID_COLS`
+  logits (elevation x azimuth about the scene's z axis), sampled bilinearly (the azimuth wraps
+  around) through a sigmoid: sharper, 512 C parameters.
+
+Their sizes and costs are counted without torch in :mod:`dronecap.gap9.arch`. Both start at
+zero (grey 0.5) and are trained with the hash table (no weight decay). The parameters are part
+of the field (its ``far`` module): FedAvg averages them with the rest (the drones of a swarm
+see the same surroundings), checkpoints carry them, and a model without a far field
+(``"none"``, and every checkpoint written before it existed) renders on the fixed background
+exactly as before.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .config import FAR_GRID_COLS as GRID_COLS
+from .config import FAR_GRID_ROWS as GRID_ROWS
+from .config import FAR_SH_DEGREE as SH_DEGREE
+from .sh import sh_dim, sh_encode
+
+
+def equirect_coords(dirs: Tensor) -> tuple[Tensor, Tensor]:
+    """Azimuth column and elevation row of unit directions [N, 3] in ``grid_sample``'s
+    [-1, 1] coordinates of the unpadded map (x: azimuth atan2(y, x) / pi, y: elevation
+    -asin(z) / (pi / 2), so +z is the top row)."""
+    x, y, z = dirs.float().unbind(-1)
+    az = torch.atan2(y, x) / math.pi
+    el = -torch.asin(z.clamp(-1.0, 1.0)) / (0.5 * math.pi)
+    return az, el
+
+
+class FarField(nn.Module):
+    """Colour at infinity per direction (see the module docstring).
+
+    Args:
+        kind: "sh" or "grid".
+        channels: colour channels C.
+
+    Parameters: ``coeffs`` [C, 16] (sh) or ``logits`` [C, GRID_ROWS, GRID_COLS] (grid), zero
+    at the start (every direction 0.5).
+    """
+
+    def __init__(self, kind: str, channels: int) -> None:
+        super().__init__()
+        if kind not in ("sh", "grid"):
+            raise ValueError(f"a far field is 'sh' or 'grid', got {kind!r}")
+        self.kind, self.channels = kind, channels
+        if kind == "sh":
+            self.coeffs = nn.Parameter(torch.zeros(channels, sh_dim(SH_DEGREE)))
+        else:
+            self.logits = nn.Parameter(torch.zeros(channels, GRID_ROWS, GRID_COLS))
+
+    def forward(self, dirs: Tensor) -> Tensor:
+        """Colour [N, C] in (0, 1), float32, of unit directions ``dirs`` [N, 3] (finite for
+        any finite parameters: the sigmoid saturates)."""
+        return torch.sigmoid(self.raw(dirs))
+
+    def raw(self, dirs: Tensor) -> Tensor:
+        """Logits [N, C] (before the sigmoid) of unit directions [N, 3]."""
+        if dirs.shape[0] == 0:
+            return dirs.new_zeros((0, self.channels), dtype=torch.float32)
+        if self.kind == "sh":
+            return sh_encode(dirs.float(), SH_DEGREE) @ self.coeffs.t()
+        az, el = equirect_coords(dirs)
+        g = self.logits
+        padded = torch.cat([g[..., -1:], g, g[..., :1]], -1)  # the azimuth wraps around
+        # column c of the map (c in [-0.5, W - 0.5]) is column c + 1 of the padded one
+        col = (az + 1.0) * 0.5 * GRID_COLS - 0.5
+        x = (2.0 * (col + 1.0) + 1.0) / (GRID_COLS + 2) - 1.0
+        grid = torch.stack([x, el], -1).view(1, 1, -1, 2)
+        out = F.grid_sample(
+            padded.unsqueeze(0), grid, mode="bilinear", padding_mode="border", align_corners=False
+        )
+        return out.view(self.channels, -1).t()
+
+
+def make_far_field(kind: str, channels: int) -> FarField | None:
+    """The far field of ``kind`` ("none": None)."""
+    return None if kind == "none" else FarField(kind, channels)
