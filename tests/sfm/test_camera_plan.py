@@ -97,3 +97,23 @@ def test_camera_from_an_earlier_reconstruction_is_scaled_to_the_frames(tmp_path)
     square = Dataset(images=np.zeros((3, 160, 160, 1), np.uint8), kind="frames")
     with pytest.raises(InputError, match="different aspect ratio"):
         plan_camera(square, "auto", tmp_path / "posed.h5")
+
+
+def test_refined_adds_a_second_radial_term_to_self_calibrated_cameras():
+    """The final adjustment of --camera estimate: SIMPLE_RADIAL (f, cx, cy, k) becomes RADIAL
+    (f, cx, cy, k, 0); a camera of another model is left as it is."""
+    import pycolmap
+
+    from dronecap.sfm.camera_plan import refined
+
+    rec = pycolmap.Reconstruction()
+    one = pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 120.0, 160, 160)
+    one.params = [120.0, 81.0, 79.0, -0.08]
+    other = pycolmap.Camera.create_from_model_name(2, "PINHOLE", 100.0, 160, 160)
+    rec.add_camera(one)
+    rec.add_camera(other)
+    refined(rec)
+    assert rec.cameras[1].model_name == "RADIAL"
+    assert list(rec.cameras[1].params) == pytest.approx([120.0, 81.0, 79.0, -0.08, 0.0])
+    assert rec.cameras[2].model_name == "PINHOLE"
+    assert list(rec.cameras[2].params) == pytest.approx([100.0, 100.0, 80.0, 80.0])
