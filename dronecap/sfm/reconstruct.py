@@ -118,7 +118,7 @@ def colmap_job(
     times["bend_check"] = time.perf_counter() - t
     if refine_after:
         t = phase("refine camera", size)
-        out["best"] = refine_camera_of(Path(out["best"]), root / "refined")
+        out["best"] = refine_camera_of(Path(out["best"]), root / "refined", refine_camera)
         times["refine_camera"] = time.perf_counter() - t
     _cpu_since(cpu, last, None)
     return out

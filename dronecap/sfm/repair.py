@@ -74,13 +74,16 @@ def remap_jumps(
     return str(model), record
 
 
-def refine_camera_of(model: Path, out: Path) -> str:
+def refine_camera_of(model: Path, out: Path, second_term: bool) -> str:
     """Bundle-adjust ``model`` refining focal length(s) and distortion (not the principal
-    point), a self-calibrated camera with a second radial term (``camera_plan.refined``);
-    written to ``out``, whose path is returned."""
+    point); with ``second_term`` (a self-calibrated camera, ``--camera estimate``) its
+    one-term cameras get a second radial term first (``camera_plan.refined``), while a
+    calibrated camera (``--camera refine``) keeps its model. Written to ``out``, whose path is
+    returned."""
     import pycolmap
 
-    rec = refined(pycolmap.Reconstruction(model))
+    rec = pycolmap.Reconstruction(model)
+    rec = refined(rec) if second_term else rec
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_focal_length = True
     ba.refine_extra_params = True

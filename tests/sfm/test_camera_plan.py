@@ -117,3 +117,20 @@ def test_refined_adds_a_second_radial_term_to_self_calibrated_cameras():
     assert list(rec.cameras[1].params) == pytest.approx([120.0, 81.0, 79.0, -0.08, 0.0])
     assert rec.cameras[2].model_name == "PINHOLE"
     assert list(rec.cameras[2].params) == pytest.approx([100.0, 100.0, 80.0, 80.0])
+
+
+@pytest.mark.parametrize("second_term, model", [(False, "SIMPLE_RADIAL"), (True, "RADIAL")])
+def test_final_adjustment_adds_k2_only_to_an_estimated_camera(tmp_path, second_term, model):
+    """--camera refine keeps a calibrated SIMPLE_RADIAL camera's model in the final
+    adjustment; --camera estimate (second_term) turns it into RADIAL."""
+    import pycolmap
+
+    from dronecap.sfm.repair import refine_camera_of
+
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 120.0, 160, 160)
+    rec.add_camera(cam)
+    (tmp_path / "in").mkdir()
+    rec.write(tmp_path / "in")
+    out = refine_camera_of(tmp_path / "in", tmp_path / "out", second_term)
+    assert pycolmap.Reconstruction(out).cameras[1].model_name == model
