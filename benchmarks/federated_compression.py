@@ -7,12 +7,16 @@ Variants, each a whole federation from the same seed; they share round 0 (the co
 pretraining does not depend on the exchange: the first variant's is copied into the others), so
 their differences are the rounds' alone:
 
-- ``fp16 M``: every array whole in fp16 both ways, FedAvgM server step (lr 2, momentum 0.5):
-  the reference the compressed variants are held to; ``fp16``: the same with plain FedAvg
+- ``fp16 M``: every array whole in fp16 both ways, FedAvgM server step (lr 2, momentum 0.5)
+  (session 10's reference); ``fp16``: the same with plain FedAvg
   (the paper's exchange);
 - ``q4 r3 M``: uploads are 4-bit changes of the 3 % most changed hash-table rows (MLPs 8-bit,
   error feedback), plain row averaging, whole fp16 downloads;
 - ``q4 r3 vis M``: the same with visibility-weighted row averaging (session 9's default);
+- ``default``: what ``dronecap federate`` does without flags (read from its settings; since
+  session 11 the hash table takes the drones' mean change, ``--table-step mean``), and
+  ``fp16 default``: the same aggregation on whole fp16 arrays (the reference the default's
+  compression is held to);
 - ``q4 r3 vis M dF``: plus sparse downloads (the global model's change, F % of the table rows
   at 4 bits, MLPs 8-bit; each drone keeps its copy);
 
@@ -53,15 +57,29 @@ LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
 RESULTS = REPO / "benchmarks" / "results"
 SERVER_STEP = dict(server_lr=2.0, server_momentum=0.5)
 SPARSE_UP = dict(quant_bits=4, sparse_rows=0.03)
+
+
+def _cli_default() -> dict:
+    """The exchange ``dronecap federate`` uses without flags (read from its settings)."""
+    from dronecap.commands.federate import Settings
+
+    d = Settings()
+    names = ("quant_bits", "sparse_rows", "down_rows", "server_lr", "server_momentum", "table_step")
+    return dict(visibility=not d.plain_average, **{n: getattr(d, n) for n in names})
+
+
+DEFAULT = _cli_default()
 VARIANTS: dict[str, dict] = {  # in the order they run: the reference first
     "fp16 M": dict(quant_bits=0, **SERVER_STEP),
+    "fp16 default": {**DEFAULT, "quant_bits": 0},  # the default's aggregation, whole fp16 arrays
+    "default": DEFAULT,
     "q4 r3 vis M": dict(**SPARSE_UP, visibility=True, **SERVER_STEP),
     "q4 r3 vis M d5": dict(**SPARSE_UP, visibility=True, down_rows=0.05, **SERVER_STEP),
     "q4 r3 vis M d10": dict(**SPARSE_UP, visibility=True, down_rows=0.10, **SERVER_STEP),
     "q4 r3 M": dict(**SPARSE_UP, **SERVER_STEP),
     "fp16": dict(quant_bits=0),
 }
-REFERENCE = "fp16 M"
+REFERENCE = "fp16 default"
 
 
 def main() -> None:
@@ -121,7 +139,7 @@ def _scheme(a: argparse.Namespace, lego: Path, drones: int, scheme: str) -> list
     cfg = dataclasses.asdict(resolve_once(preset("scene-sized"), paths).config)
     folder = {n: a.work / f"{scheme}_{drones}_{n.replace(' ', '_')}" for n in VARIANTS}
     for name in a.variants:
-        run, first = folder[name], folder[REFERENCE]
+        run, first = folder[name], folder[a.variants[0]]  # the first variant pretrains
         s = _settings(a, paths, cfg, name)
         if not a.report and a.only != "baselines":
             run.mkdir(parents=True, exist_ok=True)
@@ -232,7 +250,7 @@ def _write(a: argparse.Namespace, rows: list[dict]) -> None:
         f"--score-views {a.score_views}{' --singles' if a.singles else ''}`",
         "",
         "| scheme | drones | variant | rounds | up B/drone/round | down B/drone/round | down max | "
-        "Wi-Fi s/round | PSNR dB | vs fp16 M | vs central | vs best single | wall s |",
+        f"Wi-Fi s/round | PSNR dB | vs {REFERENCE} | vs central | vs best single | wall s |",
         "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
