@@ -247,7 +247,8 @@ def _write(a: argparse.Namespace, rows: list[dict]) -> None:
         f"Command: `.venv/bin/python benchmarks/federated_compression.py --work {a.work} "
         f"--pretrain {a.pretrain} --local-steps {a.local_steps} --rounds {a.rounds} "
         f"--drones {' '.join(map(str, a.drones))} --schemes {' '.join(a.schemes)} "
-        f"--score-views {a.score_views}{' --singles' if a.singles else ''}`",
+        f"--score-views {a.score_views} --variants {' '.join(repr(v) for v in a.variants)} "
+        f"--results {a.results}{' --singles' if a.singles else ''}`",
         "",
         "| scheme | drones | variant | rounds | up B/drone/round | down B/drone/round | down max | "
         f"Wi-Fi s/round | PSNR dB | vs {REFERENCE} | vs central | vs best single | wall s |",
