@@ -61,8 +61,8 @@ OPTIONS: dict[str, dict] = {
     # chunked mapping (sfm/chunks.py) above 200 usable frames, pinned as measured
     "chunked": {
         "chunk_above": 200,
-        "chunk_frames": 100,
-        "chunk_overlap": 20,
+        "chunk_frames": 150,
+        "chunk_overlap": 40,
         "chunk_ba_iterations": 10,
     },
 }

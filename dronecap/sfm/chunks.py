@@ -193,11 +193,14 @@ def _drop_bad_points(rec: Any, opts: SfmOptions) -> None:
 
 def start_chunk(chunks: list[list[str]], pairs: list[tuple[Any, dict[str, Any]]]) -> int | None:
     """The first chunk holding both frames of the best of our initial ``pairs``
-    (:func:`dronecap.sfm.initial_pair.initial_pairs`, best first), or None without pairs."""
-    if not pairs:
-        return None
-    a, b = pairs[0][1]["frames"]
-    return next((k for k, c in enumerate(chunks) if a in c and b in c), None)
+    (:func:`dronecap.sfm.initial_pair.initial_pairs`, best first) that fits in a chunk (a pair
+    may lie further apart than the chunks overlap), or None when none fits."""
+    for _, record in pairs:
+        a, b = record["frames"]
+        k = next((k for k, c in enumerate(chunks) if a in c and b in c), None)
+        if k is not None:
+            return k
+    return None
 
 
 def chunked_map(

@@ -93,8 +93,8 @@ class SfmOptions:
     # chunk_frames frames overlapping by chunk_overlap, merged and bundle-adjusted once
     # (sfm/chunks.py, docs/sfm.md "Chunked mapping"); 0: never.
     chunk_above: int = 200
-    chunk_frames: int = 100
-    chunk_overlap: int = 20
+    chunk_frames: int = 150
+    chunk_overlap: int = 40
     chunk_ba_iterations: int = 10  # iterations of the merged model's bundle adjustment
     time_cap: float = 0.0  # s: stop mapping after this long and keep the model so far (0: none)
     extend: bool = True  # resume mapping from the largest model to absorb the others
@@ -141,9 +141,10 @@ class SfmOptions:
         if min(self.max_reproj_error, self.abs_pose_max_error, self.tri_max_angle_error) <= 0:
             raise ValueError("reprojection, absolute-pose and angle thresholds must be > 0")
 
-    def chunked(self, n_frames: int) -> bool:
-        """Whether a single flight of ``n_frames`` usable frames is mapped in chunks."""
-        return 0 < self.chunk_above < n_frames
+    def chunked(self, n_frames: int, n_drones: int) -> bool:
+        """Whether ``n_drones`` flights of ``n_frames`` usable frames in all are mapped in
+        chunks: one flight only (a swarm's flights share no chunk frames), long enough."""
+        return n_drones == 1 and 0 < self.chunk_above < n_frames
 
     def resolved_matcher(self, n_frames: int) -> str:
         """ "sequential" or "exhaustive" for a flight of ``n_frames`` frames."""

@@ -96,7 +96,7 @@ def colmap_job(
         t = phase("map global")
         found = _global_first(out, root, opts, refine_camera, len(usable))
         times["map_global"] = time.perf_counter() - t
-    if not found and opts.chunked(len(usable)) and n_drones == 1:
+    if not found and opts.chunked(len(usable), n_drones):
         t = phase("map chunks")
         found = map_in_chunks(out, root, usable, opts, refine_camera, on_register, TINY_MODEL)
         times["map_chunks"] = time.perf_counter() - t
