@@ -11,12 +11,17 @@ from it, is mapped by resuming from its already mapped neighbour reduced to thei
 and lands in its neighbour's coordinate frame (seed frames move by 1e-15). The chunks' poses are
 then put into one model (:func:`merge_poses`: a frame keeps the pose of the first chunk that
 registered it), its points triangulated again from the database with those poses, and ONE
-bundle adjustment of the whole model refines poses and points. Why fixed seeds: freed, they
-move with the chunk and the chunks, aligned again on them by a similarity, drift apart
-(446-frame corridor, 5 chunks: ATE 0.64 %, rotation median 2.9 deg after the merge; fixed 0.55 %
-and 0.56 deg, 0.23 % and 0.45 deg after the final adjustment). The final adjustment keeps
-COLMAP's solver choice (sparse Schur up to 1000 frames): on the merged 446-frame model 10 of its
-iterations bring ATE 0.46 -> 0.23 % for 26 CPU-s, iterative Schur needs 60 for the same (59).
+bundle adjustment of the whole model refines poses and points (the re-triangulated points'
+tracks cross the chunk boundaries: keeping each chunk's own points instead, the adjustment moved
+nothing, ATE 0.57 -> 0.57 %).
+
+Measured on the 446-frame corridor (benchmarks/results/sfm_scaling.md, docs/sfm.md "Chunked
+mapping"): seeds freed, the chunks drift apart (ATE 0.64 %, rotation median 2.9 deg after the
+merge); 100-frame chunks sharing 20 left one chunk bent on its own (rotation 2.85 deg) and the
+final adjustment cannot straighten it (0.38 % / 0.56 deg at 10 and at 30 iterations); 150-frame
+chunks sharing 40 (the default) give 0.20 % / 0.36 deg on the same database. The final
+adjustment keeps COLMAP's solver choice (sparse Schur up to 1000 frames): iterative Schur needed
+60 iterations (59 CPU-s) for what 10 sparse ones (26 CPU-s) reach.
 
 A swarm (several drones) is never chunked: chunks of two drones' flights share no frames.
 """

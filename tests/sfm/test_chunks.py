@@ -47,7 +47,7 @@ def test_chunks_are_mapped_outwards_from_the_start_each_from_its_mapped_neighbou
     for k, prev in order:
         assert prev is None or prev in done
         done.add(k)
-    pairs = [((1, 2), {"frames": ["00095.png", "00099.png"]})]
+    pairs = [((1, 2), {"frames": ["00075.png", "00085.png"]})]
     chunks = chunk_names(_names(300), 100, 20)
     assert start_chunk(chunks, pairs) == 0  # in chunks 0 and 1: the first one
     pairs = [((1, 2), {"frames": ["00150.png", "00158.png"]})]
@@ -63,7 +63,7 @@ def test_only_long_single_flights_are_chunked():
     assert not opts.chunked(opts.chunk_above, n_drones=1)  # today's path up to the threshold
     assert not opts.chunked(4000, n_drones=4)  # a swarm's flights share no chunk frames
     assert not SfmOptions(chunk_above=0).chunked(4000, n_drones=1)  # 0: never
-    for bad in ({"chunk_overlap": 0}, {"chunk_overlap": 50}, {"chunk_ba_iterations": 0}):
+    for bad in ({"chunk_overlap": 0}, {"chunk_overlap": 75}, {"chunk_ba_iterations": 0}):
         with pytest.raises(ValueError):
             SfmOptions(**bad).validate()
 
