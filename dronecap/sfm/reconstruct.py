@@ -3,7 +3,8 @@
 :func:`reconstruct` writes the frames as zero-padded PNGs (COLMAP's sequential pairing follows
 image *names*), runs :func:`colmap_job` in a child process (:mod:`dronecap.sfm.isolate`) and
 loads the chosen model. The child runs extraction, matching and incremental mapping (from our
-initial pairs in turn, :func:`map_from_pairs`, then COLMAP's own when ours stay tiny), picks the
+initial pairs in turn, :func:`map_from_pairs`, then COLMAP's own when ours stay tiny; a long
+single flight in chunks, :mod:`dronecap.sfm.chunks`), picks the
 largest of the models COLMAP returns (model 0 is not always the largest) and, when frames are
 still missing, resumes mapping from it with relaxed registration thresholds so that frames of the
 other models can join it; frames whose pose jumps off the flight path
