@@ -46,6 +46,7 @@ OPTIONS: dict[str, dict] = {
         "ba_prune_redundant": False,
         "loop_pairs": "index",
         "mapper": "incremental",
+        "chunk_above": 0,
     },
     "default": {},
     "fast": {
@@ -53,9 +54,17 @@ OPTIONS: dict[str, dict] = {
         "ba_global_max_iterations": 10,
         "ba_prune_redundant": True,
         "loop_pairs": "words",
+        "chunk_above": 0,
     },
-    "words loops": {"loop_pairs": "words"},
-    "global": {"mapper": "global"},
+    "words loops": {"loop_pairs": "words", "chunk_above": 0},
+    "global": {"mapper": "global", "chunk_above": 0},
+    # chunked mapping (sfm/chunks.py) above 200 usable frames, pinned as measured
+    "chunked": {
+        "chunk_above": 200,
+        "chunk_frames": 150,
+        "chunk_overlap": 40,
+        "chunk_ba_iterations": 10,
+    },
 }
 QUICK_OPTIONS = ("today", "default")
 
@@ -105,7 +114,14 @@ def run_one(frames: Path, out: Path, overrides: dict) -> dict:
     wall, cpu = time.perf_counter() - t0, _cpu() - c0
     acc, t, c = rep.get("accuracy") or {}, rep["times"], rep.get("cpu_seconds", {})
     match = rep.get("matching", {})
-    mapping = ("map global", "map", "map (colmap start)", "extend", "re-register jumps")
+    mapping = (
+        "map global",
+        "map chunks",
+        "map",
+        "map (colmap start)",
+        "extend",
+        "re-register jumps",
+    )
     return {
         "kept": rep["frames_total"],
         "registered_pct": 100.0 * rep["registration_rate"],
@@ -119,10 +135,18 @@ def run_one(frames: Path, out: Path, overrides: dict) -> dict:
         "loop_cpu": match.get("index_cpu_seconds", match.get("loop_cpu_seconds", 0.0)),
         "map_s": sum(
             t.get(k, 0.0)
-            for k in ("map_global", "map", "map_colmap_start", "extend", "remap_jumps")
+            for k in (
+                "map_global",
+                "map_chunks",
+                "map",
+                "map_colmap_start",
+                "extend",
+                "remap_jumps",
+            )
         ),
         "map_cpu": sum(c.get(k, 0.0) for k in mapping),
         "global_mapper": rep.get("global_mapper"),
+        "chunked": "chunked" in rep.get("models", {}),  # the merged chunks' model was mapped
         "wall_s": wall,
         "cpu_s": cpu,
         "load": [round(v, 2) for v in load] + [round(os.getloadavg()[0], 2)],

@@ -38,6 +38,8 @@ OPTION_HELP = {
     "loop_pairs": "loop pairs from: words (our bag of words) | index (pycolmap's visual index) "
     "| none",
     "mapper": "incremental | global (GLOMAP, kept only when complete and not bent)",
+    "chunk_above": "a single flight of more usable frames than this is mapped in overlapping "
+    "chunks, merged and bundle-adjusted once (0: never)",
     "quadratic_overlap": "sequential: pair frame i with i+2^k (COLMAP default) instead of "
     "i+1..i+overlap",
 }

@@ -21,10 +21,13 @@ import numpy as np
 
 from dronecap.sfm.camera_plan import ESTIMATE_MODEL
 from dronecap.sfm.flights import flight_of
+from dronecap.sfm.initial_pair import FALLBACK_MIN_ANGLE
 from dronecap.sfm.options import FINEST_OCTAVE, SfmOptions
 from dronecap.sfm.retrieval import write_cross_flight_pairs, write_loop_pairs
 
 TRAIN_DESCRIPTORS = 20000  # descriptors sampled to train the flight's visual vocabulary
+PAIR_TRIES = 3  # our initial pairs tried in turn (best first) until one starts a non-tiny model
+NARROW_PAIR_MARGIN = 0.8  # a pair under init_min_tri_angle starts with this x its measured angle
 MIN_KEYPOINTS = 16  # a frame with fewer SIFT keypoints cannot register (reported as textureless)
 
 
@@ -332,6 +335,7 @@ def incremental_map(
     input_path: Path | None = None,
     init_pair: tuple[int, int] | None = None,
     image_names: list[str] | None = None,
+    seeded: bool = False,
 ) -> dict[str, dict[str, float]]:
     """Run COLMAP's incremental mapper; writes models to ``out_dir/<k>``.
 
@@ -342,6 +346,8 @@ def incremental_map(
         init_pair: database image ids of the initial pair (default: COLMAP chooses). One model
             only: COLMAP would start every further model from the same pair.
         image_names: map only these images (default: all).
+        seeded: ``input_path`` is a seed (:mod:`dronecap.sfm.chunks`): its frames are held
+            fixed and registration keeps the normal thresholds.
 
     Returns:
         model folder -> {"frames": registered frames, "reproj": mean reprojection error, px}.
@@ -349,7 +355,8 @@ def incremental_map(
     import pycolmap
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    options = mapper_options(opts, refine_camera, relaxed=input_path is not None)
+    options = mapper_options(opts, refine_camera, relaxed=input_path is not None and not seeded)
+    options.fix_existing_frames = seeded
     if init_pair is not None:
         options.init_image_id1, options.init_image_id2 = init_pair
         options.multiple_models = False
@@ -373,3 +380,45 @@ def incremental_map(
             "reproj": float(rec.compute_mean_reprojection_error()),
         }
     return found
+
+
+def map_from_pairs(
+    database: Path,
+    image_dir: Path,
+    work: Path,
+    opts: SfmOptions,
+    refine_camera: bool,
+    on_register: Callable[[int], None],
+    pairs: list[tuple[tuple[int, int], dict[str, Any]]],
+    enough: float,
+    only: list[str] | None = None,
+) -> tuple[dict[str, dict[str, float]], list[dict[str, Any]]]:
+    """Map from our initial ``pairs`` (:func:`initial_pairs`, best first) in turn (only the
+    frames ``only``, default all), into
+    ``work/models``, ``work/models_pair2``, ..., until one starts a model of at least ``enough``
+    frames; at most :data:`PAIR_TRIES` pairs.
+
+    COLMAP refuses some starts (its own checks on the pair, at its own thresholds) and some grow
+    no further than a few frames; the next pair is then a better start than COLMAP's own search,
+    which favours planar pairs. Returns the models found (folder -> frames, reprojection error)
+    and each tried pair's report record with the frames of its model ("model_frames", 0: none).
+    """
+    found: dict[str, dict[str, float]] = {}
+    tried = []
+    for k, (pair, record) in enumerate(pairs[:PAIR_TRIES]):
+        out = work / ("models" if k == 0 else f"models_pair{k + 1}")
+        # COLMAP re-checks the pair's angle: let a narrow pair (a slow flight) through
+        angle = max(FALLBACK_MIN_ANGLE, NARROW_PAIR_MARGIN * record["tri_angle_deg"])
+        pair_opts = dataclasses.replace(
+            opts, init_min_tri_angle=min(opts.init_min_tri_angle, angle)
+        )
+        models = incremental_map(
+            database, image_dir, out, pair_opts, refine_camera, on_register, None, pair, only
+        )
+        found.update(models)
+        tried.append(
+            {**record, "model_frames": max((v["frames"] for v in models.values()), default=0)}
+        )
+        if tried[-1]["model_frames"] >= enough:
+            break
+    return found, tried

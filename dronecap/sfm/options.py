@@ -89,6 +89,13 @@ class SfmOptions:
     # "incremental" (COLMAP's incremental mapper) or "global" (GLOMAP, guarded: a bent or
     # incomplete global model is replaced by the incremental one; sfm/global_map.py)
     mapper: str = "incremental"
+    # A single flight of more usable frames than chunk_above is mapped in chunks of
+    # chunk_frames frames overlapping by chunk_overlap, merged and bundle-adjusted once
+    # (sfm/chunks.py, docs/sfm.md "Chunked mapping"); 0: never.
+    chunk_above: int = 200
+    chunk_frames: int = 150
+    chunk_overlap: int = 40
+    chunk_ba_iterations: int = 10  # iterations of the merged model's bundle adjustment
     time_cap: float = 0.0  # s: stop mapping after this long and keep the model so far (0: none)
     extend: bool = True  # resume mapping from the largest model to absorb the others
     seed: int = 0  # random seed of the mapper (deterministic runs)
@@ -127,8 +134,17 @@ class SfmOptions:
             raise ValueError(f"visual_words must be at least 16, got {self.visual_words}")
         if self.ba_global_ratio <= 1.0 or self.ba_refinements < 1 or self.time_cap < 0:
             raise ValueError("ba_global_ratio must be > 1, ba_refinements >= 1, time_cap >= 0")
+        if self.chunk_above < 0 or not 1 <= self.chunk_overlap < self.chunk_frames / 2:
+            raise ValueError("chunk_above must be >= 0 and chunk_overlap in [1, chunk_frames / 2)")
+        if self.chunk_ba_iterations < 1:
+            raise ValueError(f"chunk_ba_iterations must be >= 1, got {self.chunk_ba_iterations}")
         if min(self.max_reproj_error, self.abs_pose_max_error, self.tri_max_angle_error) <= 0:
             raise ValueError("reprojection, absolute-pose and angle thresholds must be > 0")
+
+    def chunked(self, n_frames: int, n_drones: int) -> bool:
+        """Whether ``n_drones`` flights of ``n_frames`` usable frames in all are mapped in
+        chunks: one flight only (a swarm's flights share no chunk frames), long enough."""
+        return n_drones == 1 and 0 < self.chunk_above < n_frames
 
     def resolved_matcher(self, n_frames: int) -> str:
         """ "sequential" or "exhaustive" for a flight of ``n_frames`` frames."""

@@ -3,7 +3,8 @@
 :func:`reconstruct` writes the frames as zero-padded PNGs (COLMAP's sequential pairing follows
 image *names*), runs :func:`colmap_job` in a child process (:mod:`dronecap.sfm.isolate`) and
 loads the chosen model. The child runs extraction, matching and incremental mapping (from our
-initial pairs in turn, :func:`map_from_pairs`, then COLMAP's own when ours stay tiny), picks the
+initial pairs in turn, :func:`map_from_pairs`, then COLMAP's own when ours stay tiny; a long
+single flight in chunks, :mod:`dronecap.sfm.chunks`), picks the
 largest of the models COLMAP returns (model 0 is not always the largest) and, when frames are
 still missing, resumes mapping from it with relaxed registration thresholds so that frames of the
 other models can join it; frames whose pose jumps off the flight path
@@ -24,14 +25,16 @@ import numpy as np
 
 from dronecap.sfm.bend import rotation_disagreement
 from dronecap.sfm.camera_plan import CameraPlan
+from dronecap.sfm.chunks import map_in_chunks
 from dronecap.sfm.colmap_steps import (
     MIN_KEYPOINTS,
     extract_finer_when_sparse,
     incremental_map,
+    map_from_pairs,
     match,
 )
 from dronecap.sfm.flights import image_names
-from dronecap.sfm.initial_pair import FALLBACK_MIN_ANGLE, initial_pairs
+from dronecap.sfm.initial_pair import initial_pairs
 from dronecap.sfm.isolate import run_isolated
 from dronecap.sfm.links import separate_unlinked
 from dronecap.sfm.options import SfmOptions
@@ -40,8 +43,6 @@ from dronecap.sfm.repair import jump_frames, refine_camera_of, remap_jumps
 GLOBAL_MIN_FRACTION = 0.99  # a global model is kept only with this share of the usable frames
 TINY_MODEL = 0.5  # our start registered under this fraction of usable frames: also try COLMAP's
 ALT_MODELS = "models_alt"  # folder of the models COLMAP started from its own initial pair
-PAIR_TRIES = 3  # our initial pairs tried in turn (best first) until one starts a non-tiny model
-NARROW_PAIR_MARGIN = 0.8  # a pair under init_min_tri_angle starts with this x its measured angle
 NO_START = (
     "the mapper found no initial pair with enough inliers and baseline"
     " (a camera turning in place or hovering gives no baseline)"
@@ -96,6 +97,10 @@ def colmap_job(
         t = phase("map global")
         found = _global_first(out, root, opts, refine_camera, len(usable))
         times["map_global"] = time.perf_counter() - t
+    if not found and opts.chunked(len(usable), n_drones):
+        t = phase("map chunks")
+        found = map_in_chunks(out, root, usable, opts, refine_camera, on_register, TINY_MODEL)
+        times["map_chunks"] = time.perf_counter() - t
     if not found:
         found = _incremental(
             out, root, opts, refine_camera, on_register, len(usable), deadline, phase
@@ -276,46 +281,6 @@ def _capped(opts: SfmOptions, deadline: float | None) -> SfmOptions:
 def _out_of_time(deadline: float | None) -> bool:
     """Whether a time cap is set and its ``deadline`` (perf_counter) has passed."""
     return deadline is not None and time.perf_counter() >= deadline
-
-
-def map_from_pairs(
-    database: Path,
-    image_dir: Path,
-    work: Path,
-    opts: SfmOptions,
-    refine_camera: bool,
-    on_register: Callable[[int], None],
-    pairs: list[tuple[tuple[int, int], dict[str, Any]]],
-    enough: float,
-) -> tuple[dict[str, dict[str, float]], list[dict[str, Any]]]:
-    """Map from our initial ``pairs`` (:func:`initial_pairs`, best first) in turn, into
-    ``work/models``, ``work/models_pair2``, ..., until one starts a model of at least ``enough``
-    frames; at most :data:`PAIR_TRIES` pairs.
-
-    COLMAP refuses some starts (its own checks on the pair, at its own thresholds) and some grow
-    no further than a few frames; the next pair is then a better start than COLMAP's own search,
-    which favours planar pairs. Returns the models found (folder -> frames, reprojection error)
-    and each tried pair's report record with the frames of its model ("model_frames", 0: none).
-    """
-    found: dict[str, dict[str, float]] = {}
-    tried = []
-    for k, (pair, record) in enumerate(pairs[:PAIR_TRIES]):
-        out = work / ("models" if k == 0 else f"models_pair{k + 1}")
-        # COLMAP re-checks the pair's angle: let a narrow pair (a slow flight) through
-        angle = max(FALLBACK_MIN_ANGLE, NARROW_PAIR_MARGIN * record["tri_angle_deg"])
-        pair_opts = dataclasses.replace(
-            opts, init_min_tri_angle=min(opts.init_min_tri_angle, angle)
-        )
-        models = incremental_map(
-            database, image_dir, out, pair_opts, refine_camera, on_register, None, pair
-        )
-        found.update(models)
-        tried.append(
-            {**record, "model_frames": max((v["frames"] for v in models.values()), default=0)}
-        )
-        if tried[-1]["model_frames"] >= enough:
-            break
-    return found, tried
 
 
 def bar_events(bar: Any, total: int) -> Callable[[tuple[Any, ...]], None]:

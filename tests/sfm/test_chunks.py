@@ -1,0 +1,100 @@
+"""Chunked mapping of long flights (issue 27): the partition, who gets chunked, and a real run
+whose chunks are merged into one straight, accurate model."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from dronecap.datasets.format import write_dataset
+from dronecap.sfm.blender_flight import blender_flight
+from dronecap.sfm.chunks import chunk_names, mapping_order, start_chunk
+from dronecap.sfm.options import SfmOptions
+from dronecap.sfm.pipeline import run_sfm
+
+
+def _names(n: int) -> list[str]:
+    return [f"{i:05d}.png" for i in range(n)]
+
+
+@pytest.mark.parametrize("n", [181, 200, 446, 1000, 4000])
+def test_chunks_cover_the_flight_in_order_and_overlap_by_exactly_the_asked_frames(n):
+    names = _names(n)
+    chunks = chunk_names(names, 100, 20)
+    assert chunks[0][0] == names[0] and chunks[-1][-1] == names[-1]
+    assert sorted({f for c in chunks for f in c}) == names  # every frame, none invented
+    for a, b in zip(chunks[:-1], chunks[1:], strict=True):
+        assert a[-20:] == b[:20]  # the seed: the last 20 of one are the first 20 of the next
+        assert set(a) & set(b) == set(b[:20])  # and nothing else is shared
+    sizes = [len(c) for c in chunks]
+    assert max(sizes) - min(sizes) <= 1  # no small tail chunk
+    assert all(80 <= s <= 125 for s in sizes)
+
+
+def test_a_flight_within_one_chunk_is_one_chunk_and_bad_overlaps_are_refused():
+    assert chunk_names(_names(100), 100, 20) == [_names(100)]
+    assert chunk_names(_names(30), 100, 20) == [_names(30)]
+    for overlap in (0, 50, 60):
+        with pytest.raises(ValueError):
+            chunk_names(_names(300), 100, overlap)
+
+
+def test_chunks_are_mapped_outwards_from_the_start_each_from_its_mapped_neighbour():
+    order = mapping_order([[]] * 5, 2)
+    assert order == [(2, None), (3, 2), (4, 3), (1, 2), (0, 1)]
+    done = set()
+    for k, prev in order:
+        assert prev is None or prev in done
+        done.add(k)
+    pairs = [((1, 2), {"frames": ["00075.png", "00085.png"]})]
+    chunks = chunk_names(_names(300), 100, 20)
+    assert start_chunk(chunks, pairs) == 0  # in chunks 0 and 1: the first one
+    pairs = [((1, 2), {"frames": ["00150.png", "00158.png"]})]
+    assert start_chunk(chunks, pairs) == 1
+    too_wide = ((3, 4), {"frames": ["00010.png", "00150.png"]})  # in no chunk: the next pair
+    assert start_chunk(chunks, [too_wide, *pairs]) == 1
+    assert start_chunk(chunks, [too_wide]) is None and start_chunk(chunks, []) is None
+
+
+def test_only_long_single_flights_are_chunked():
+    opts = SfmOptions()
+    assert opts.chunked(446, n_drones=1)
+    assert not opts.chunked(opts.chunk_above, n_drones=1)  # today's path up to the threshold
+    assert not opts.chunked(4000, n_drones=4)  # a swarm's flights share no chunk frames
+    assert not SfmOptions(chunk_above=0).chunked(4000, n_drones=1)  # 0: never
+    for bad in ({"chunk_overlap": 0}, {"chunk_overlap": 75}, {"chunk_ba_iterations": 0}):
+        with pytest.raises(ValueError):
+            SfmOptions(**bad).validate()
+
+
+def test_a_chunked_lego_flight_is_one_straight_accurate_model(lego_dir, tmp_path):
+    """36 lego views in 3 chunks of ~16 (6 shared): one merged model, every frame, accurate."""
+    ds, gt = blender_flight(lego_dir, count=36)
+    write_dataset(tmp_path / "frames.h5", ds)
+    (tmp_path / "gt.json").write_text(json.dumps(gt))
+    opts = SfmOptions(
+        matcher="sequential",
+        overlap=5,
+        loop_pairs="none",
+        chunk_above=20,
+        chunk_frames=16,
+        chunk_overlap=6,
+        num_threads=2,
+    )
+    report = run_sfm(
+        tmp_path / "frames.h5",
+        tmp_path / "posed.h5",
+        tmp_path / "sfm",
+        opts,
+        tmp_path / "gt.json",
+        progress=False,
+    )
+    assert "chunked" in report["models"]  # the merged chunks' model, not a fallback
+    assert (tmp_path / "sfm" / "work" / "chunks").is_dir()
+    acc = report["accuracy"]
+    assert acc["registration_rate"] >= 35 / 36
+    assert acc["ate_percent"] < 2.0  # the unchunked 30-frame lego run's bound
+    assert acc["rot_median_deg"] < 6.0
+    assert not report["bend_check"]["bent"] and report["bend_check"]["pairs"] >= 25
+    assert 0 < report["quality"]["mean_reprojection_error_px"] < 1.5
