@@ -2,7 +2,7 @@
 
 Among verified pairs with a general epipolar geometry a few frames apart, the ones with most
 inliers get their triangulation angle and forward motion measured; :func:`rank_initial_pairs`
-orders the candidates to try (:func:`dronecap.sfm.reconstruct.map_from_pairs`). Slow flights
+orders the candidates to try (:func:`dronecap.sfm.colmap_steps.map_from_pairs`). Slow flights
 whose pairs are all labelled planar fall back to the widest planar pairs. Why not COLMAP's own
 choice: see :func:`initial_pairs`.
 """
