@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -35,6 +36,8 @@ from .config import FAR_GRID_COLS as GRID_COLS
 from .config import FAR_GRID_ROWS as GRID_ROWS
 from .config import FAR_SH_DEGREE as SH_DEGREE
 from .sh import sh_dim, sh_encode
+
+MAP_ROWS = 64  # rows of the exported environment map (2 x as many columns)
 
 
 def equirect_coords(dirs: Tensor) -> tuple[Tensor, Tensor]:
@@ -90,6 +93,36 @@ class FarField(nn.Module):
             padded.unsqueeze(0), grid, mode="bilinear", padding_mode="border", align_corners=False
         )
         return out.view(self.channels, -1).t()
+
+
+def environment_map(far: FarField, rows: int = MAP_ROWS) -> np.ndarray:
+    """The far field as an equirectangular image float32 [rows, 2 rows, C] in [0, 1]: columns
+    the azimuth about the scene's z axis from -180 to +180 degrees (atan2(y, x)), rows the
+    elevation from +90 (top, +z) to -90 degrees, pixel centres on a regular grid."""
+    el = (0.5 - (np.arange(rows) + 0.5) / rows) * np.pi
+    az = ((np.arange(2 * rows) + 0.5) / (2 * rows) - 0.5) * 2.0 * np.pi
+    a, e = np.meshgrid(az, el)
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    with torch.no_grad():
+        out = far(torch.as_tensor(d, dtype=torch.float32)).numpy()
+    return out.reshape(rows, 2 * rows, far.channels)
+
+
+def far_field_record(far: FarField) -> dict:
+    """What another renderer needs to draw the far field: {"kind", "channels", "sh_degree" or
+    "grid_shape", "parameters" (nested lists of the logits before the sigmoid: ``coeffs`` [C,
+    16] in :mod:`nerf.sh`'s order, or ``logits`` [C, rows, cols]), "colour"}."""
+    if far.kind == "sh":
+        shape: dict = {"sh_degree": SH_DEGREE, "parameters": far.coeffs.detach().tolist()}
+    else:
+        shape = {"grid_shape": [GRID_ROWS, GRID_COLS], "parameters": far.logits.detach().tolist()}
+    return {
+        "kind": far.kind,
+        "channels": far.channels,
+        **shape,
+        "colour": "sigmoid(logits) per channel in [0, 1], of the unit ray direction in the "
+        "scene frame; a ray's colour is C_box + T_exit * far(d)",
+    }
 
 
 def make_far_field(kind: str, channels: int) -> FarField | None:
