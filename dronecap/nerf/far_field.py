@@ -16,7 +16,8 @@ Two forms (``TrainConfig.far_field``):
   around) through a sigmoid: sharper, 512 C parameters.
 
 Their sizes and costs are counted without torch in :mod:`dronecap.gap9.arch`. Both start at
-zero (grey 0.5) and are trained with the hash table (no weight decay). The parameters are part
+one colour in every direction (``TrainConfig.far_init``) and are trained with the hash table
+(no weight decay). The parameters are part
 of the field (its ``far`` module): FedAvg averages them with the rest (the drones of a swarm
 see the same surroundings), checkpoints carry them, and a model without a far field
 (``"none"``, and every checkpoint written before it existed) renders on the fixed background
@@ -56,20 +57,27 @@ class FarField(nn.Module):
     Args:
         kind: "sh" or "grid".
         channels: colour channels C.
+        init: the colour of every direction at the start, in (0, 1).
 
-    Parameters: ``coeffs`` [C, 16] (sh) or ``logits`` [C, GRID_ROWS, GRID_COLS] (grid), zero
-    at the start (every direction 0.5).
+    Parameters: ``coeffs`` [C, 16] (sh: only the constant band 0 non-zero at the start) or
+    ``logits`` [C, GRID_ROWS, GRID_COLS] (grid), giving ``init`` in every direction.
     """
 
-    def __init__(self, kind: str, channels: int) -> None:
+    def __init__(self, kind: str, channels: int, init: float = 0.5) -> None:
         super().__init__()
         if kind not in ("sh", "grid"):
             raise ValueError(f"a far field is 'sh' or 'grid', got {kind!r}")
+        if not 0 < init < 1:
+            raise ValueError(f"the far field's start colour must be in (0, 1), got {init}")
         self.kind, self.channels = kind, channels
+        logit = math.log(init / (1 - init))
         if kind == "sh":
-            self.coeffs = nn.Parameter(torch.zeros(channels, sh_dim(SH_DEGREE)))
+            band0 = float(sh_encode(torch.tensor([[0.0, 0.0, 1.0]]), SH_DEGREE)[0, 0])
+            coeffs = torch.zeros(channels, sh_dim(SH_DEGREE))
+            coeffs[:, 0] = logit / band0
+            self.coeffs = nn.Parameter(coeffs)
         else:
-            self.logits = nn.Parameter(torch.zeros(channels, GRID_ROWS, GRID_COLS))
+            self.logits = nn.Parameter(torch.full((channels, GRID_ROWS, GRID_COLS), logit))
 
     def forward(self, dirs: Tensor) -> Tensor:
         """Colour [N, C] in (0, 1), float32, of unit directions ``dirs`` [N, 3] (finite for
@@ -125,6 +133,6 @@ def far_field_record(far: FarField) -> dict:
     }
 
 
-def make_far_field(kind: str, channels: int) -> FarField | None:
-    """The far field of ``kind`` ("none": None)."""
-    return None if kind == "none" else FarField(kind, channels)
+def make_far_field(kind: str, channels: int, init: float = 0.5) -> FarField | None:
+    """The far field of ``kind`` ("none": None) starting at colour ``init``."""
+    return None if kind == "none" else FarField(kind, channels, init)

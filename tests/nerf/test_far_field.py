@@ -99,6 +99,18 @@ def test_rays_that_miss_the_box_render_the_far_field(cube_rgb):
     torch.testing.assert_close(got, tr.field.far(dirs))
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_far_field_starts_at_far_init(cube_rgb, kind):
+    """``far_init`` is the colour of every direction before training; (0, 1) only."""
+    tr = Trainer(_cfg(kind, far_init=0.1), dataclasses.replace(cube_rgb, alpha=None))
+    origins = torch.tensor([[5.0, 5.0, 5.0]]).expand(8, 3)
+    dirs = _unit(8).abs()  # away from the box: the far field alone
+    got = tr.render_rays(origins, dirs / dirs.norm(dim=-1, keepdim=True), torch.zeros(3))
+    torch.testing.assert_close(got, torch.full((8, 3), 0.1))
+    for bad in (0.0, 1.0, float("nan")):
+        assert any("far_init" in line for line in problems(_cfg(kind, far_init=bad)))
+
+
 def test_resolver_chooses_from_the_data(cube_rgb):
     with_alpha = resolve(_cfg("auto"), cube_rgb)
     assert with_alpha.config.far_field == "none"
