@@ -11,7 +11,8 @@ Scenes (posed, split datasets; paths given with ``--scene NAME=PATH``):
   ``split``).
 
 Each scene is trained with every ``--variants`` value of ``far_field`` (``none`` = the fixed
-background as before; ``auto`` = what the resolver picks; or a kind, ``sh``/``grid``) for
+background as before; ``auto`` = what the resolver picks; or a kind, ``sh``/``grid``; or
+settings ``FIELD=VALUE[,FIELD=VALUE]``, e.g. ``far_init=0.05``) and ``--seeds`` for
 ``--steps`` on 1 thread, into ``WORK/<scene>_<variant>``; a finished run there is reused (runs
 can be started side by side with the CLI, then tabulated here). ``WORK/<scene>_<variant>.load``,
 when present, holds the load averages at the run's start and end (one line each). The table
@@ -39,13 +40,15 @@ RESULTS = REPO / "benchmarks" / "results"
 
 
 def train(dataset: Path, run: Path, variant: str, steps: int, seed: int = 0) -> dict:
-    """Default ``dronecap train`` with ``far_field=variant`` (unless "auto") and training
+    """Default ``dronecap train`` with ``far_field=variant`` (unless "auto"; a variant with
+    "=" is a comma-separated list of FIELD=VALUE settings instead) and training
     ``seed`` (unless 0, the default) for ``steps`` on 1 thread, reused when ``run`` finished
     it; the row of the table."""
     load = run.with_suffix(".load")
     if not (run / "metrics.json").exists():
         load.write_text(" ".join(f"{x:.2f}" for x in os.getloadavg()) + "\n")
-        sets = [] if variant == "auto" else ["--set", f"far_field={variant}"]
+        items = variant.split(",") if "=" in variant else [f"far_field={variant}"]
+        sets = [a for item in items if item != "far_field=auto" for a in ("--set", item)]
         sets += ["--set", f"seed={seed}"] if seed else []
         env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
         cmd = [sys.executable, "-m", "dronecap.cli", "train", str(dataset), "--steps", str(steps),
@@ -127,7 +130,8 @@ def main() -> None:
         name, path = item.split("=", 1)
         for seed in args.seeds:
             for v in args.variants:
-                run = args.work / (f"{name}_{v}" + (f"_s{seed}" if seed else ""))
+                tag = v.replace("=", "").replace(",", "_")
+                run = args.work / (f"{name}_{tag}" + (f"_s{seed}" if seed else ""))
                 if args.no_train and not (run / "metrics.json").exists():
                     continue
                 row = {"scene": name, "variant": v, **train(Path(path), run, v, args.steps, seed)}
