@@ -9,8 +9,7 @@ learn as scene content:
   brighter scene with darker gains renders the same frames): the geometric mean gain is 1, so
   the scene keeps the average exposure of the training frames.
 - **vignetting**: the lens darkens the image towards its corners, the same way in every frame
-  of one camera: the factor ``1 + k1 r^2 + k2 r^4 + k3 r^6`` (``k`` learned, initially 0;
-  at most 1, :data:`VIGNETTE_RANGE`), with
+  of one camera: the factor ``1 + k1 r^2 + k2 r^4 + k3 r^6`` (``k`` learned, initially 0), with
   ``r`` the distance of the pixel centre from the principal point over that of the farthest
   image corner (0 at the principal point, 1 at the farthest corner).
 
@@ -28,11 +27,7 @@ from torch import Tensor, nn
 from dronecap.camera import Camera
 
 MAX_LOG_GAIN = 3.0  # |log-gain| limit per frame (gains within e^-3..e^3 = 0.05..20)
-# The vignetting factor is clamped to this: positive, and at most 1 (a lens only darkens away
-# from its centre). Unbounded above, a model with a far field learned a bright ring instead
-# (x 1.15 at r 0.8 on the simulated corridor, whose frames have no vignetting) and rendered
-# its walls that much darker (benchmarks/results/far_field.md, session 12).
-VIGNETTE_RANGE = (0.05, 1.0)
+VIGNETTE_RANGE = (0.05, 2.0)  # the vignetting factor is clamped to this (positive, finite)
 VIGNETTE_TERMS = 3  # k1 r^2 + k2 r^4 + k3 r^6
 
 
