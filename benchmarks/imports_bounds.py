@@ -199,6 +199,7 @@ def main() -> None:
     p.add_argument("--work", type=Path, required=True)
     p.add_argument("--himax-work", type=Path, help="workspace with dataset.h5 (forward scene)")
     p.add_argument("--scenes", nargs="+", default=["object", "forward"], help="scenes to run")
+    p.add_argument("--codes", nargs="+", default=["old", "new"], help="old and/or new code")
     p.add_argument("--old-tree", type=Path, default=Path("/work/main"))
     p.add_argument("--steps", type=int, default=1500)
     args = p.parse_args()
@@ -211,7 +212,9 @@ def main() -> None:
     scenes = {name: makers[name]() for name in args.scenes}
     rows = []
     for scene, src in scenes.items():
-        for code, tree in (("old", args.old_tree), ("new", REPO)):
+        for code, tree in [
+            c for c in (("old", args.old_tree), ("new", REPO)) if c[0] in args.codes
+        ]:
             ds = args.work / f"{scene}_{code}.h5"
             out = _cli(tree, "import-transforms", str(src), "-o", str(ds))
             row = {"scene": scene, "code": code, **check_bounds(ds)}
@@ -238,7 +241,8 @@ def main() -> None:
     text = (
         "# Imports that bound what is seen (transforms.json without points)\n\n"
         f"Command: `nice .venv/bin/python benchmarks/imports_bounds.py --work {args.work} "
-        f"--himax-work {args.himax_work} --steps {args.steps} --scenes {' '.join(args.scenes)}`; "
+        f"--himax-work {args.himax_work} --steps {args.steps} --scenes {' '.join(args.scenes)} "
+        f"--codes {' '.join(args.codes)}`; "
         f"old = {args.old_tree}; default `dronecap train --steps {args.steps} --threads 1`; load "
         f"average at start {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}, at the end "
         f"{end[0]:.1f} / {end[1]:.1f} / {end[2]:.1f}.\n\n" + "\n".join(lines) + "\n\n"
