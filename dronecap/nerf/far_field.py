@@ -36,6 +36,7 @@ from torch import Tensor, nn
 from .config import FAR_GRID_COLS as GRID_COLS
 from .config import FAR_GRID_ROWS as GRID_ROWS
 from .config import FAR_SH_DEGREE as SH_DEGREE
+from .config import TrainConfig
 from .sh import sh_dim, sh_encode
 
 MAP_ROWS = 64  # rows of the exported environment map (2 x as many columns)
@@ -63,7 +64,7 @@ class FarField(nn.Module):
     ``logits`` [C, GRID_ROWS, GRID_COLS] (grid), giving ``init`` in every direction.
     """
 
-    def __init__(self, kind: str, channels: int, init: float = 0.5) -> None:
+    def __init__(self, kind: str, channels: int, init: float = TrainConfig.far_init) -> None:
         super().__init__()
         if kind not in ("sh", "grid"):
             raise ValueError(f"a far field is 'sh' or 'grid', got {kind!r}")
@@ -133,6 +134,6 @@ def far_field_record(far: FarField) -> dict:
     }
 
 
-def make_far_field(kind: str, channels: int, init: float = 0.5) -> FarField | None:
+def make_far_field(kind: str, channels: int, init: float) -> FarField | None:
     """The far field of ``kind`` ("none": None) starting at colour ``init``."""
     return None if kind == "none" else FarField(kind, channels, init)
