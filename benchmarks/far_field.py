@@ -11,7 +11,8 @@ Scenes (posed, split datasets; paths given with ``--scene NAME=PATH``):
   ``split``).
 
 Each scene is trained with every ``--variants`` value of ``far_field`` (``none`` = the fixed
-background as before; ``auto`` = what the resolver picks; or a kind, ``sh``/``grid``) for
+background as before; ``auto`` = what the resolver picks; or a kind, ``sh``/``grid``; or
+settings ``FIELD=VALUE[,FIELD=VALUE]``, e.g. ``far_init=0.05``) and ``--seeds`` for
 ``--steps`` on 1 thread, into ``WORK/<scene>_<variant>``; a finished run there is reused (runs
 can be started side by side with the CLI, then tabulated here). ``WORK/<scene>_<variant>.load``,
 when present, holds the load averages at the run's start and end (one line each). The table
@@ -38,13 +39,17 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
 
 
-def train(dataset: Path, run: Path, variant: str, steps: int) -> dict:
-    """Default ``dronecap train`` with ``far_field=variant`` (unless "auto") for ``steps`` on 1
-    thread, reused when ``run`` finished it; the row of the table."""
+def train(dataset: Path, run: Path, variant: str, steps: int, seed: int = 0) -> dict:
+    """Default ``dronecap train`` with ``far_field=variant`` (unless "auto"; a variant with
+    "=" is a comma-separated list of FIELD=VALUE settings instead) and training
+    ``seed`` (unless 0, the default) for ``steps`` on 1 thread, reused when ``run`` finished
+    it; the row of the table."""
     load = run.with_suffix(".load")
     if not (run / "metrics.json").exists():
         load.write_text(" ".join(f"{x:.2f}" for x in os.getloadavg()) + "\n")
-        sets = [] if variant == "auto" else ["--set", f"far_field={variant}"]
+        items = variant.split(",") if "=" in variant else [f"far_field={variant}"]
+        sets = [a for item in items if item != "far_field=auto" for a in ("--set", item)]
+        sets += ["--set", f"seed={seed}"] if seed else []
         env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
         cmd = [sys.executable, "-m", "dronecap.cli", "train", str(dataset), "--steps", str(steps),
                "--out", str(run), "--threads", "1", "--no-progress", *sets]  # fmt: skip
@@ -56,6 +61,7 @@ def train(dataset: Path, run: Path, variant: str, steps: int) -> dict:
     m = json.loads((run / "metrics.json").read_text())
     loads = load.read_text().split("\n") if load.exists() else []
     return {
+        "seed": m["config"]["seed"],
         "far_field": m["config"].get("far_field", "none"),
         "why": m["reasons"].get("far_field", ""),
         "steps": m["steps"],
@@ -67,22 +73,13 @@ def train(dataset: Path, run: Path, variant: str, steps: int) -> dict:
     }
 
 
-def far_map(run: Path, rows: int = 64) -> np.ndarray | None:
+def far_map(run: Path) -> np.ndarray | None:
     """The learned far field of ``run`` as an image [rows, 2 rows, C] (None without one)."""
-    import torch
-
+    from dronecap.nerf.far_field import environment_map
     from dronecap.nerf.trainer import Trainer
 
-    tr = Trainer.load(run / "checkpoint.pt")
-    if tr.field.far is None:
-        return None
-    el = np.linspace(0.5 * np.pi, -0.5 * np.pi, rows)
-    az = np.linspace(-np.pi, np.pi, 2 * rows)
-    a, e = np.meshgrid(az, el)
-    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
-    with torch.no_grad():
-        out = tr.field.far(torch.as_tensor(d, dtype=torch.float32)).numpy()
-    return out.reshape(rows, 2 * rows, -1)
+    far = Trainer.load(run / "checkpoint.pt").field.far
+    return None if far is None else environment_map(far)
 
 
 def figure(table: list[dict], path: Path) -> None:
@@ -124,31 +121,40 @@ def main() -> None:
     p.add_argument("--scene", action="append", required=True, help="NAME=DATASET.h5")
     p.add_argument("--variants", nargs="+", default=["none", "auto"])
     p.add_argument("--steps", type=int, default=1500)
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds")
     p.add_argument("--no-train", action="store_true", help="tabulate finished runs only")
     args = p.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     table = []
     for item in args.scene:
         name, path = item.split("=", 1)
-        for v in args.variants:
-            if args.no_train and not (args.work / f"{name}_{v}" / "metrics.json").exists():
-                continue
-            row = {"scene": name, "variant": v, **train(Path(path), args.work / f"{name}_{v}",
-                                                           v, args.steps)}  # fmt: skip
-            table.append(row)
-            print(name, v, row["far_field"], f"{row['psnr']:.2f} dB", flush=True)
+        for seed in args.seeds:
+            for v in args.variants:
+                tag = v.replace("=", "").replace(",", "_")
+                run = args.work / (f"{name}_{tag}" + (f"_s{seed}" if seed else ""))
+                if args.no_train and not (run / "metrics.json").exists():
+                    continue
+                row = {"scene": name, "variant": v, **train(Path(path), run, v, args.steps, seed)}
+                table.append(row)
+                print(name, v, seed, row["far_field"], f"{row['psnr']:.2f} dB", flush=True)
     RESULTS.mkdir(exist_ok=True)
     figure(table, RESULTS / "far_field.png")
-    lines = ["| scene | far_field asked | resolved | test PSNR dB | SSIM | ms/step (median) | "
-             "load (start -> end) |", "|---|---|---|---:|---:|---:|---|"]  # fmt: skip
+    lines = [
+        "| scene | seed | far_field asked | resolved | test PSNR dB | SSIM | ms/step (median) "
+        "| load (start -> end) |",
+        "|---|---:|---|---|---:|---:|---:|---|",
+    ]
     for r in table:
-        lines.append(f"| {r['scene']} | {r['variant']} | {r['far_field']} | {r['psnr']:.2f} | "
-                     f"{r['ssim']:.3f} | {r['ms']:.0f} | {r['load']} |")  # fmt: skip
+        lines.append(
+            f"| {r['scene']} | {r['seed']} | {r['variant']} | {r['far_field']} | "
+            f"{r['psnr']:.2f} | {r['ssim']:.3f} | {r['ms']:.0f} | {r['load']} |"
+        )
     scenes = " ".join(f"--scene {item}" for item in args.scene)
     text = (
         "# The far field: default `dronecap train` with the far field on and off\n\n"
         f"Command: `nice -n 10 .venv/bin/python benchmarks/far_field.py --work {args.work} "
-        f"{scenes} --variants {' '.join(args.variants)} --steps {args.steps}` (1 thread per "
+        f"{scenes} --variants {' '.join(args.variants)} --steps {args.steps} --seeds "
+        f"{' '.join(map(str, args.seeds))}` (1 thread per "
         "run; finished runs reused).\n\n" + "\n".join(lines) + "\n\nFigure: `far_field.png`.\n"
     )
     print(text)

@@ -39,6 +39,7 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_160" / "lego"
 LENS = (-0.12, 0.03, 0.001, -0.001)  # k1 k2 p1 p2: a mild barrel lens, OpenCV model
+EARLIER = "\n## Notes"  # what follows it in the results file is kept when re-run
 AZIMUTH_HALF = 60.0  # degrees: the object is seen from one side (a third of the way round)
 
 
@@ -141,6 +142,14 @@ def check_bounds(dataset: Path) -> dict:
     }
 
 
+def background_of(dataset: Path) -> str:
+    """The dataset's declared background colour and where it came from ("none" without)."""
+    from dronecap.datasets.format import open_dataset
+
+    ds = open_dataset(dataset)
+    return "none" if ds.background is None else f"{list(ds.background)}"
+
+
 def train(tree: Path, dataset: Path, run: Path, steps: int) -> dict:
     """Default ``dronecap train`` of ``tree`` for ``steps`` on 1 thread: test PSNR / SSIM. A
     finished run of the same dataset and steps in ``run`` is reused (runs can be started side
@@ -188,49 +197,62 @@ def figure(rows: list[dict], path: Path) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--work", type=Path, required=True)
-    p.add_argument("--himax-work", type=Path, required=True, help="workspace with dataset.h5")
+    p.add_argument("--himax-work", type=Path, help="workspace with dataset.h5 (forward scene)")
+    p.add_argument("--scenes", nargs="+", default=["object", "forward"], help="scenes to run")
+    p.add_argument("--codes", nargs="+", default=["old", "new"], help="old and/or new code")
     p.add_argument("--old-tree", type=Path, default=Path("/work/main"))
     p.add_argument("--steps", type=int, default=1500)
     args = p.parse_args()
     load = os.getloadavg()
     args.work.mkdir(parents=True, exist_ok=True)
-    scenes = {
-        "object": object_capture(args.work / "object"),
-        "forward": forward_capture(args.himax_work / "dataset.h5", args.work / "forward"),
+    makers = {
+        "object": lambda: object_capture(args.work / "object"),
+        "forward": lambda: forward_capture(args.himax_work / "dataset.h5", args.work / "forward"),
     }
+    scenes = {name: makers[name]() for name in args.scenes}
     rows = []
     for scene, src in scenes.items():
-        for code, tree in (("old", args.old_tree), ("new", REPO)):
+        for code, tree in [
+            c for c in (("old", args.old_tree), ("new", REPO)) if c[0] in args.codes
+        ]:
             ds = args.work / f"{scene}_{code}.h5"
             out = _cli(tree, "import-transforms", str(src), "-o", str(ds))
             row = {"scene": scene, "code": code, **check_bounds(ds)}
             row.update(train(tree, ds, args.work / f"run_{scene}_{code}", args.steps))
             row["import_says"] = out.strip().splitlines()[-1]
+            row["background"] = background_of(ds)
             rows.append(row)
             print(scene, code, row["bounds_from"], f"{row['psnr']:.2f} dB", flush=True)
+    end = os.getloadavg()
     RESULTS.mkdir(exist_ok=True)
     figure(rows, RESULTS / "imports_bounds.png")
     lines = [
         "| scene | code | bounds from | AABB | look-at inside | view centres inside | "
-        "test PSNR dB | SSIM |",
-        "|---|---|---|---|---|---|---:|---:|",
+        "background | test PSNR dB | SSIM |",
+        "|---|---|---|---|---|---|---|---:|---:|",
     ]
     for r in rows:
         lines.append(
             f"| {r['scene']} | {r['code']} | {r['bounds_from']} | {r['aabb']} | "
-            f"{r['lookat_inside']} | {r['view_centres_inside']} | {r['psnr']:.2f} | "
+            f"{r['lookat_inside']} | {r['view_centres_inside']} | {r['background']} | "
+            f"{r['psnr']:.2f} | "
             f"{r['ssim']:.3f} |"
         )
     text = (
         "# Imports that bound what is seen (transforms.json without points)\n\n"
         f"Command: `nice .venv/bin/python benchmarks/imports_bounds.py --work {args.work} "
-        f"--himax-work {args.himax_work} --steps {args.steps}`; old = {args.old_tree}; default "
-        f"`dronecap train --steps {args.steps} --threads 1`; load average at start "
-        f"{load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}.\n\n" + "\n".join(lines) + "\n\n"
+        f"--himax-work {args.himax_work} --steps {args.steps} --scenes {' '.join(args.scenes)} "
+        f"--codes {' '.join(args.codes)}`; "
+        f"old = {args.old_tree}; default `dronecap train --steps {args.steps} --threads 1`; load "
+        f"average at start {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}, at the end "
+        f"{end[0]:.1f} / {end[1]:.1f} / {end[2]:.1f}.\n\n" + "\n".join(lines) + "\n\n"
         "Figure: `imports_bounds.png` (top view: cameras, look-at point, boxes).\n"
     )
     print(text)
-    (RESULTS / "imports_bounds.md").write_text(text)
+    out = RESULTS / "imports_bounds.md"
+    old = out.read_text() if out.exists() else ""
+    kept = old[old.index(EARLIER) :] if EARLIER in old else ""  # notes and earlier tables
+    out.write_text(text + kept)
 
 
 if __name__ == "__main__":

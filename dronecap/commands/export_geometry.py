@@ -1,4 +1,5 @@
-"""`dronecap export-geometry`: a trained run -> mesh.ply + points.ply (marching cubes)."""
+"""`dronecap export-geometry`: a trained run -> mesh.ply + points.ply (marching cubes), and the
+far field (far_field.json + .png) when the model has one."""
 
 from __future__ import annotations
 
@@ -45,4 +46,6 @@ def run(s: Settings) -> int:
         f"wrote {out}/mesh.ply ({len(geo.vertices)} vertices, {len(geo.faces)} triangles) and "
         f"{out}/points.ply; surface at density {geo.level:.3g} per scene unit"
     )
+    if geo.far is not None:
+        print(f"the far field ({geo.far['kind']}): {out}/far_field.json, {out}/far_field.png")
     return 0

@@ -11,7 +11,10 @@ aspect ratio), ``color`` (``"auto"``, ``"rgb"`` or ``"gray"``, checked by
   (height keeps the aspect ratio; colour premultiplied by alpha while resizing), stored RGB or
   BT.601 gray (:mod:`dronecap.datasets.blender`'s image helpers). ``color="auto"`` stores gray
   when every image is gray (single channel or R = G = B), so gray datasets round-trip exactly;
-  alpha is kept (with a white background) when some pixel is not opaque;
+  alpha is kept (with a white background) when some pixel is not opaque; without alpha, frames
+  whose borders are nearly all one colour (an object on a plain backdrop, as tools write RGB
+  captures) declare that colour as the background (:mod:`dronecap.datasets.background`), camera
+  footage none;
 - the camera is scaled exactly through the resize (:meth:`Camera.scaled_to`: fx, cx by
   new width / old width, fy, cy by new height / old height; distortion unchanged);
 - bounds as for a captured flight (:mod:`dronecap.datasets.normalize`): the poses are oriented,
@@ -286,6 +289,7 @@ def imported_dataset(
     table, index = cameras
     source_camera = table[0]
     inliers = bounds.inliers
+    background, background_from = dataset_background(imgs)
     ds = Dataset(
         images=imgs.images,
         kind="dataset",
@@ -298,7 +302,7 @@ def imported_dataset(
         near_far=bounds.near_far,
         aabb=bounds.aabb,
         normalization=bounds.normalization if normalization is None else normalization,
-        background=white_background(imgs.images.shape[3], imgs.alpha),
+        background=background,
         extra=points_extra(bounds.points[inliers], None if colors is None else colors[inliers]),
         provenance=provenance,
         attrs={
@@ -306,6 +310,7 @@ def imported_dataset(
             "source_size": list(imgs.source_size),
             "source_camera": dataclasses.asdict(source_camera),
             "bounds_from": bounds.bounds_from,
+            "background_from": background_from,
         },
     )
     if len(table) > 1:
@@ -323,13 +328,19 @@ def points_extra(points: np.ndarray, colors: np.ndarray | None) -> dict[str, np.
     return {POINTS_XYZ: np.asarray(points, np.float64), POINTS_RGB: np.asarray(rgb, np.uint8)}
 
 
-def white_background(channels: int, alpha: np.ndarray | None) -> tuple[float, ...] | None:
-    """The dataset background: white when there is alpha, none otherwise."""
-    return None if alpha is None else (BACKGROUND,) * channels
+def dataset_background(imgs: Images) -> tuple[tuple[float, ...] | None, str]:
+    """The dataset background and where it came from: white when there is alpha, else the
+    frames' plain backdrop when they have one (:func:`background.plain_background`), else
+    None (camera footage)."""
+    from dronecap.datasets.background import plain_background
+
+    if imgs.alpha is not None:
+        return (BACKGROUND,) * imgs.images.shape[3], "white behind the alpha channel"
+    return plain_background(imgs.images)
 
 
 def describe(path: Path) -> str:
-    """Two lines on an imported dataset: views, size, split, camera, bounds."""
+    """Three lines on an imported dataset: views, size, split, camera; bounds; background."""
     from dronecap.datasets.format import open_dataset
 
     ds = open_dataset(path)
@@ -339,5 +350,6 @@ def describe(path: Path) -> str:
     return (
         f"wrote {path}: {ds.n} views {ds.hw[1]}x{ds.hw[0]}x{ds.channels} ({counts}), camera "
         f"{k.model} fx={k.fx:.2f} fy={k.fy:.2f}\n"
-        f"aabb {lo.round(3).tolist()} .. {hi.round(3).tolist()} ({ds.attrs['bounds_from']})"
+        f"aabb {lo.round(3).tolist()} .. {hi.round(3).tolist()} ({ds.attrs['bounds_from']})\n"
+        f"background: {ds.attrs.get('background_from', 'none')}"
     )

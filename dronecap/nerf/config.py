@@ -85,6 +85,7 @@ class TrainConfig:
     # equirectangular map per channel) or "auto": none for images with alpha or a declared
     # background colour (known), the far field for footage without either. Resolved once.
     far_field: str = "auto"
+    far_init: float = 0.5  # the far field's colour in every direction before training, (0, 1)
     # --- data as the paper describes it (resolving against a dataset replaces them by the
     #     dataset's values; the GAP9 cost model uses these when no dataset is given) ------------
     resolution: int = 160  # image side in pixels
@@ -273,6 +274,7 @@ _RULES: dict[str, tuple[Any, str]] = {
     "weight_decay": (lambda x, c: x >= 0, ">= 0"),
     "lr_final_ratio": (lambda x, c: x > 0, "> 0"),
     "photometric_lr_ratio": (lambda x, c: x > 0, "> 0"),
+    "far_init": (lambda x, c: 0 < x < 1, "in (0, 1)"),
     "budget_mb": (lambda x, c: x > 0, "> 0"),
     "resolution": (lambda x, c: x >= 1, ">= 1"),
     "train_images": (lambda x, c: x >= 0, ">= 0"),

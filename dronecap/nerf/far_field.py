@@ -16,7 +16,8 @@ Two forms (``TrainConfig.far_field``):
   around) through a sigmoid: sharper, 512 C parameters.
 
 Their sizes and costs are counted without torch in :mod:`dronecap.gap9.arch`. Both start at
-zero (grey 0.5) and are trained with the hash table (no weight decay). The parameters are part
+one colour in every direction (``TrainConfig.far_init``) and are trained with the hash table
+(no weight decay). The parameters are part
 of the field (its ``far`` module): FedAvg averages them with the rest (the drones of a swarm
 see the same surroundings), checkpoints carry them, and a model without a far field
 (``"none"``, and every checkpoint written before it existed) renders on the fixed background
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -34,7 +36,10 @@ from torch import Tensor, nn
 from .config import FAR_GRID_COLS as GRID_COLS
 from .config import FAR_GRID_ROWS as GRID_ROWS
 from .config import FAR_SH_DEGREE as SH_DEGREE
+from .config import TrainConfig
 from .sh import sh_dim, sh_encode
+
+MAP_ROWS = 64  # rows of the exported environment map (2 x as many columns)
 
 
 def equirect_coords(dirs: Tensor) -> tuple[Tensor, Tensor]:
@@ -53,20 +58,27 @@ class FarField(nn.Module):
     Args:
         kind: "sh" or "grid".
         channels: colour channels C.
+        init: the colour of every direction at the start, in (0, 1).
 
-    Parameters: ``coeffs`` [C, 16] (sh) or ``logits`` [C, GRID_ROWS, GRID_COLS] (grid), zero
-    at the start (every direction 0.5).
+    Parameters: ``coeffs`` [C, 16] (sh: only the constant band 0 non-zero at the start) or
+    ``logits`` [C, GRID_ROWS, GRID_COLS] (grid), giving ``init`` in every direction.
     """
 
-    def __init__(self, kind: str, channels: int) -> None:
+    def __init__(self, kind: str, channels: int, init: float = TrainConfig.far_init) -> None:
         super().__init__()
         if kind not in ("sh", "grid"):
             raise ValueError(f"a far field is 'sh' or 'grid', got {kind!r}")
+        if not 0 < init < 1:
+            raise ValueError(f"the far field's start colour must be in (0, 1), got {init}")
         self.kind, self.channels = kind, channels
+        logit = math.log(init / (1 - init))
         if kind == "sh":
-            self.coeffs = nn.Parameter(torch.zeros(channels, sh_dim(SH_DEGREE)))
+            band0 = float(sh_encode(torch.tensor([[0.0, 0.0, 1.0]]), SH_DEGREE)[0, 0])
+            coeffs = torch.zeros(channels, sh_dim(SH_DEGREE))
+            coeffs[:, 0] = logit / band0
+            self.coeffs = nn.Parameter(coeffs)
         else:
-            self.logits = nn.Parameter(torch.zeros(channels, GRID_ROWS, GRID_COLS))
+            self.logits = nn.Parameter(torch.full((channels, GRID_ROWS, GRID_COLS), logit))
 
     def forward(self, dirs: Tensor) -> Tensor:
         """Colour [N, C] in (0, 1), float32, of unit directions ``dirs`` [N, 3] (finite for
@@ -92,6 +104,36 @@ class FarField(nn.Module):
         return out.view(self.channels, -1).t()
 
 
-def make_far_field(kind: str, channels: int) -> FarField | None:
-    """The far field of ``kind`` ("none": None)."""
-    return None if kind == "none" else FarField(kind, channels)
+def environment_map(far: FarField, rows: int = MAP_ROWS) -> np.ndarray:
+    """The far field as an equirectangular image float32 [rows, 2 rows, C] in [0, 1]: columns
+    the azimuth about the scene's z axis from -180 to +180 degrees (atan2(y, x)), rows the
+    elevation from +90 (top, +z) to -90 degrees, pixel centres on a regular grid."""
+    el = (0.5 - (np.arange(rows) + 0.5) / rows) * np.pi
+    az = ((np.arange(2 * rows) + 0.5) / (2 * rows) - 0.5) * 2.0 * np.pi
+    a, e = np.meshgrid(az, el)
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    with torch.no_grad():
+        out = far(torch.as_tensor(d, dtype=torch.float32)).numpy()
+    return out.reshape(rows, 2 * rows, far.channels)
+
+
+def far_field_record(far: FarField) -> dict:
+    """What another renderer needs to draw the far field: {"kind", "channels", "sh_degree" or
+    "grid_shape", "parameters" (nested lists of the logits before the sigmoid: ``coeffs`` [C,
+    16] in :mod:`nerf.sh`'s order, or ``logits`` [C, rows, cols]), "colour"}."""
+    if far.kind == "sh":
+        shape: dict = {"sh_degree": SH_DEGREE, "parameters": far.coeffs.detach().tolist()}
+    else:
+        shape = {"grid_shape": [GRID_ROWS, GRID_COLS], "parameters": far.logits.detach().tolist()}
+    return {
+        "kind": far.kind,
+        "channels": far.channels,
+        **shape,
+        "colour": "sigmoid(logits) per channel in [0, 1], of the unit ray direction in the "
+        "scene frame; a ray's colour is C_box + T_exit * far(d)",
+    }
+
+
+def make_far_field(kind: str, channels: int, init: float) -> FarField | None:
+    """The far field of ``kind`` ("none": None) starting at colour ``init``."""
+    return None if kind == "none" else FarField(kind, channels, init)

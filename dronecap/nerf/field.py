@@ -84,7 +84,7 @@ class Field(nn.Module):
         n_in = cfg.geo_features + sh_dim(cfg.sh_degree)
         self.color_mlp = _mlp(n_in, cfg.hidden, cfg.color_layers, channels)
         kind = cfg.far_field if cfg.far_field in ("sh", "grid") else "none"
-        self.far = make_far_field(kind, channels)  # what lies past the box (nerf.far_field)
+        self.far = make_far_field(kind, channels, cfg.far_init)  # past the box (nerf.far_field)
         a = torch.as_tensor(np.asarray(aabb), dtype=torch.float32)
         self.register_buffer("aabb_min", a[0].clone(), persistent=False)
         self.register_buffer("aabb_size", (a[1] - a[0]).clone(), persistent=False)

@@ -13,7 +13,11 @@
 
 Output (open3d's PLY writer, one folder written atomically): ``mesh.ply`` (vertices, normals,
 colours, triangles) and ``points.ply`` (the mesh vertices as a point cloud with normals and
-colours).
+colours). A model with a far field (:mod:`nerf.far_field`: what its rays see past the box, the
+walls and sky of a flight, the backdrop of an object) also gets it, since the mesh alone leaves
+that out: ``far_field.json`` (kind, parameters and how they give a colour per direction) and
+``far_field.png`` (the same as an equirectangular environment map, 8-bit, azimuth about the
+scene's z axis across, +z at the top), in the mesh's frame.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from dronecap.errors import InputError
 
 MESH = "mesh.ply"
 POINTS = "points.ply"
+FAR_JSON, FAR_PNG = "far_field.json", "far_field.png"
 CHUNK = 1 << 16  # points per field evaluation
 
 
@@ -39,6 +44,8 @@ class Geometry:
     normals: np.ndarray  # float64 [V, 3] unit, outwards
     colors: np.ndarray  # float64 [V, 3] in [0, 1]
     level: float  # density threshold (per scene unit)
+    far: dict | None = None  # nerf.far_field.far_field_record of the model's far field
+    far_map: np.ndarray | None = None  # float32 [rows, 2 rows, C] its environment map
 
 
 def density_grid(trainer, resolution: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -97,7 +104,13 @@ def extract(trainer, resolution: int = 128, opacity: float = 0.5) -> Geometry:
     rgb = np.concatenate(cols) if cols else np.zeros((0, 1))
     if rgb.shape[1] == 1:
         rgb = np.repeat(rgb, 3, axis=1)
-    return Geometry(verts, faces.astype(np.int32), normals, np.clip(rgb, 0, 1), level)
+    geo = Geometry(verts, faces.astype(np.int32), normals, np.clip(rgb, 0, 1), level)
+    far = trainer.field.far
+    if far is not None:
+        from dronecap.nerf.far_field import environment_map, far_field_record
+
+        geo.far, geo.far_map = far_field_record(far), environment_map(far)
+    return geo
 
 
 def write_geometry(geo: Geometry, out_dir: str | Path) -> Path:
@@ -120,4 +133,18 @@ def write_geometry(geo: Geometry, out_dir: str | Path) -> Path:
             raise InputError("open3d could not write the mesh", out_dir / MESH)
         if not o3d.io.write_point_cloud(str(tmp / POINTS), cloud):
             raise InputError("open3d could not write the point cloud", out_dir / POINTS)
+        if geo.far is not None:
+            _write_far_field(geo.far, geo.far_map, tmp)
     return out_dir
+
+
+def _write_far_field(record: dict, env: np.ndarray, folder: Path) -> None:
+    """``far_field.json`` (``record``) and ``far_field.png`` (``env`` [rows, cols, C] in [0,
+    1], 8-bit gray or RGB) in ``folder``."""
+    import json
+
+    import cv2
+
+    (folder / FAR_JSON).write_text(json.dumps(record, indent=1))
+    img = np.round(np.clip(env, 0, 1) * 255).astype(np.uint8)
+    cv2.imwrite(str(folder / FAR_PNG), img[..., ::-1] if img.shape[-1] == 3 else img[..., 0])

@@ -9,7 +9,8 @@ learn as scene content:
   brighter scene with darker gains renders the same frames): the geometric mean gain is 1, so
   the scene keeps the average exposure of the training frames.
 - **vignetting**: the lens darkens the image towards its corners, the same way in every frame
-  of one camera: the factor ``1 + k1 r^2 + k2 r^4 + k3 r^6`` (``k`` learned, initially 0), with
+  of one camera: the factor ``1 + k1 r^2 + k2 r^4 + k3 r^6`` (``k`` learned, initially 0)
+  over its largest value for r in [0, 1] (so it never brightens), with
   ``r`` the distance of the pixel centre from the principal point over that of the farthest
   image corner (0 at the principal point, 1 at the farthest corner).
 
@@ -28,6 +29,11 @@ from dronecap.camera import Camera
 
 MAX_LOG_GAIN = 3.0  # |log-gain| limit per frame (gains within e^-3..e^3 = 0.05..20)
 VIGNETTE_RANGE = (0.05, 2.0)  # the vignetting factor is clamped to this (positive, finite)
+# Radii (evenly over [0, 1]) at which the falloff polynomial's largest value is taken: the factor
+# is the polynomial over it, so no ring is brighter than 1. Left free, a model with a far field
+# learned a bright ring (x 1.15 at r 0.8 on the simulated corridor, which has no vignetting)
+# and rendered its walls that much darker (benchmarks/results/far_field.md, session 12).
+PEAK_RADII = 33
 VIGNETTE_TERMS = 3  # k1 r^2 + k2 r^4 + k3 r^6
 
 
@@ -78,11 +84,16 @@ class Photometric(nn.Module):
         return torch.exp(log_gain - log_gain.mean(0, keepdim=True))
 
     def falloff(self, radius: Tensor) -> Tensor:
-        """Vignetting factor [R] at normalised radii [R] (:func:`normalized_radius`), clamped
-        to :data:`VIGNETTE_RANGE`."""
+        """Vignetting factor [R] at normalised radii [R] (:func:`normalized_radius`): the
+        polynomial over its largest value on [0, 1] (1 at the centre unless a ring is
+        brighter: a lens only darkens), clamped to :data:`VIGNETTE_RANGE`."""
+        peak = self._polynomial(torch.linspace(0.0, 1.0, PEAK_RADII)).max()
+        return (self._polynomial(radius) / peak).clamp(*VIGNETTE_RANGE)
+
+    def _polynomial(self, radius: Tensor) -> Tensor:
+        """``1 + k1 r^2 + k2 r^4 + k3 r^6`` [R] at radii [R]."""
         r2 = radius * radius
-        powers = torch.stack([r2, r2 * r2, r2 * r2 * r2], -1)
-        return (1.0 + powers @ self.vignette).clamp(*VIGNETTE_RANGE)
+        return 1.0 + torch.stack([r2, r2 * r2, r2 * r2 * r2], -1) @ self.vignette
 
     def forward(self, color: Tensor, frame: Tensor, radius: Tensor) -> Tensor:
         """The colour the camera records of rendered colour ``color``.

@@ -5,6 +5,7 @@ background that lies at infinity."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -96,6 +97,18 @@ def test_rays_that_miss_the_box_render_the_far_field(cube_rgb):
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     got = tr.render_rays(origins, dirs, torch.zeros(3))
     torch.testing.assert_close(got, tr.field.far(dirs))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_far_field_starts_at_far_init(cube_rgb, kind):
+    """``far_init`` is the colour of every direction before training; (0, 1) only."""
+    tr = Trainer(_cfg(kind, far_init=0.1), dataclasses.replace(cube_rgb, alpha=None))
+    origins = torch.tensor([[5.0, 5.0, 5.0]]).expand(8, 3)
+    dirs = _unit(8).abs()  # away from the box: the far field alone
+    got = tr.render_rays(origins, dirs / dirs.norm(dim=-1, keepdim=True), torch.zeros(3))
+    torch.testing.assert_close(got, torch.full((8, 3), 0.1))
+    for bad in (0.0, 1.0, float("nan")):
+        assert any("far_init" in line for line in problems(_cfg(kind, far_init=bad)))
 
 
 def test_resolver_chooses_from_the_data(cube_rgb):
@@ -200,3 +213,35 @@ def test_fp16_storage_trains_with_a_far_field(cube_rgb, kind):
     )
     assert not any(log["skipped"] for log in tr.train(5))
     assert tr.weights_finite() and torch.isfinite(tr.field.far(_unit(16))).all()
+
+
+def test_the_geometry_export_carries_the_far_field(tmp_path):
+    """far_field.json gives back the model's colour per direction; far_field.png is its map
+    (azimuth -180..180 across): a grid bright for y > 0, dark for y < 0 shows so."""
+    import cv2
+
+    from dronecap.nerf.far_field import environment_map, far_field_record
+    from dronecap.nerf.geometry import FAR_JSON, FAR_PNG, Geometry, write_geometry
+    from dronecap.nerf.sh import sh_encode
+
+    pytest.importorskip("open3d")
+    sh = FarField("sh", 3)
+    with torch.no_grad():
+        sh.coeffs.copy_(torch.randn(sh.coeffs.shape, generator=torch.Generator().manual_seed(1)))
+    rec = json.loads(json.dumps(far_field_record(sh)))  # what a reader of the file gets
+    d = _unit(200)
+    back = torch.sigmoid(sh_encode(d, rec["sh_degree"]) @ torch.tensor(rec["parameters"]).t())
+    torch.testing.assert_close(back, sh(d))
+    grid = FarField("grid", 1)
+    with torch.no_grad():
+        grid.logits[..., : grid.logits.shape[-1] // 2] = -6.0  # azimuth < 0: y < 0, dark
+        grid.logits[..., grid.logits.shape[-1] // 2 :] = 6.0
+    tri, up = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.tile([0.0, 0, 1], (3, 1))
+    faces, grey = np.array([[0, 1, 2]], np.int32), np.full((3, 3), 0.5)
+    geo = Geometry(tri, faces, up, grey, 1.0, far_field_record(grid), environment_map(grid))
+    out = write_geometry(geo, tmp_path / "g")
+    assert json.loads((out / FAR_JSON).read_text())["kind"] == "grid"
+    png = cv2.imread(str(out / FAR_PNG), cv2.IMREAD_UNCHANGED)
+    rows = png.shape[0]
+    assert png.shape == (rows, 2 * rows)
+    assert png[:, rows // 4].max() < 5 and png[:, 3 * rows // 2].min() > 250

@@ -81,7 +81,23 @@ def test_falloff_stays_positive_and_finite():
     with torch.no_grad():
         pm.vignette.copy_(torch.tensor([-50.0, 1e30, -1e30]))
     f = pm.falloff(torch.linspace(0, 1, 11))
-    assert torch.isfinite(f).all() and (f >= VIGNETTE_RANGE[0]).all() and f[0] == 1.0
+    assert torch.isfinite(f).all() and (f >= VIGNETTE_RANGE[0]).all() and (f <= 1.0).all()
+
+
+def test_vignetting_never_brightens_and_keeps_learning():
+    """A bright ring (the corridor's k with a far field) is scaled to peak at 1; a falloff
+    that darkens outwards is unchanged; gradients reach every k either way."""
+    pm = Photometric(1, 1, exposure=False, vignetting=True)
+    r = torch.linspace(0, 1, 101)
+    with torch.no_grad():
+        pm.vignette.copy_(torch.tensor([0.36, -0.008, -0.27]))  # x 1.15 at r 0.8 if free
+    f = pm.falloff(r)
+    assert abs(float(f.detach().max()) - 1.0) < 1e-3 and f[0] < 0.9
+    f.sum().backward()
+    assert (pm.vignette.grad != 0).all()
+    with torch.no_grad():
+        pm.vignette.copy_(torch.tensor([-0.3, 0.05, -0.01]))  # darkening outwards
+    torch.testing.assert_close(pm.falloff(r), 1 - 0.3 * r**2 + 0.05 * r**4 - 0.01 * r**6)
 
 
 def test_auto_is_off_for_alpha_datasets_and_on_for_camera_footage(cube_rgb):
