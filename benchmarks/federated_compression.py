@@ -280,9 +280,10 @@ def _write(a: argparse.Namespace, rows: list[dict]) -> None:
 
 
 def _figure(rows: list[dict], ref: dict, path: Path) -> None:
-    """PSNR minus the reference's vs bytes per drone per round (up and down)."""
+    """PSNR minus the reference's vs bytes per drone per round (up and down); nothing when the
+    reference variant did not run (the figure would be empty)."""
     plt = pyplot()
-    if plt is None:
+    if plt is None or not ref:
         return
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for (scheme, drones), psnr in ref.items():
