@@ -191,8 +191,31 @@ def fmt(v, spec: str) -> str:
     return "–" if v is None else format(v, spec)
 
 
+def earlier_table(path: Path) -> tuple[dict[str, str], list[str]]:
+    """The rows and the notes below the table of an earlier results file.
+
+    Returns ``({case: its table line}, [lines after the table])``, both empty when ``path``
+    does not exist: rows of cases not run now are kept as they were written (with their
+    load and any hand-written remark), and so are the notes.
+    """
+    if not path.exists():
+        return {}, []
+    lines = path.read_text().splitlines()
+    table = [i for i, line in enumerate(lines) if line.startswith("| ")]
+    if not table:
+        return {}, []
+    rows = {line.split("|")[1].strip(): line for line in lines[table[0] + 1 : table[-1] + 1]}
+    return rows, lines[table[-1] + 1 :]
+
+
 def write_results(rows: list[dict], args: argparse.Namespace, load: str) -> None:
-    """Markdown table + bar plot of registration."""
+    """Markdown table + bar plot of registration.
+
+    A case not in ``rows`` keeps its line from the existing results file, so an ``--only``
+    run in a fresh ``--work`` folder updates its rows without dropping the others.
+    """
+    kept, notes = earlier_table(RESULTS / "real_footage.md")
+    ran = {r["case"]: r for r in rows}
     lines = [
         "# Real footage and drone capture folders: default `ingest` + `sfm`",
         "",
@@ -202,13 +225,18 @@ def write_results(rows: list[dict], args: argparse.Namespace, load: str) -> None
         f"Times are single-thread wall clock of `sfm` on a 2-core machine shared with other "
         f"jobs; the load column is the 1-minute load average when each row finished (this "
         f"invocation started at load {load.split('load average:')[-1].split(',')[0].strip()}); "
-        "rows of earlier `--only` runs are kept.",
+        "rows of cases not run are kept from the earlier table, with their load.",
         "",
         "| case | frames in / kept | registered | reproj. px | sfm s | ATE % | rot. median ° "
         "| scale err. % | gravity ° | camera | remedy | floor | load |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for r in rows:
+    for case in CASES:
+        if case not in ran:
+            if case in kept:
+                lines.append(kept[case])
+            continue
+        r = ran[case]
         if "error" in r:
             lines.append(f"| {r['case']} | {r['error']} | | | | | | | | | | {verdict(r)} | |")
             continue
@@ -219,6 +247,7 @@ def write_results(rows: list[dict], args: argparse.Namespace, load: str) -> None
             f"| {fmt(r.get('scale_err_pct'), '.2f')} | {fmt(r.get('gravity_deg'), '.2f')} "
             f"| {r['camera']} | {r['remedy'] or '–'} | {verdict(r)} | {load_of(r)} |"
         )
+    lines += notes
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "real_footage.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
@@ -227,11 +256,15 @@ def write_results(rows: list[dict], args: argparse.Namespace, load: str) -> None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ok = [r for r in rows if "error" not in r]
-    fig, ax = plt.subplots(figsize=(8, 0.45 * len(ok) + 1.2))
-    ax.barh([r["case"] for r in ok], [r["registered_pct"] for r in ok], color="tab:blue")
-    for i, r in enumerate(ok):
-        floor = FLOORS.get(r["case"])
+    registered = [  # (case, % registered) of every table row, run now or kept
+        (cells[1].strip(), float(cells[3].split("%")[0]))
+        for cells in (line.split("|") for line in lines if line.startswith("| "))
+        if cells[3].strip().endswith("%") and cells[1].strip() != "case"
+    ]
+    fig, ax = plt.subplots(figsize=(8, 0.45 * len(registered) + 1.2))
+    ax.barh([c for c, _ in registered], [pct for _, pct in registered], color="tab:blue")
+    for i, (case, _) in enumerate(registered):
+        floor = FLOORS.get(case)
         if floor:
             ax.plot([floor[0]] * 2, [i - 0.4, i + 0.4], color="tab:red")
     ax.set_xlabel("frames registered, % of kept (red: floor)")
@@ -275,8 +308,7 @@ def main() -> None:
             row["load"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout
             saved.write_text(json.dumps(row))
             print(json.dumps(row), flush=True)
-        if saved.exists():  # rows of earlier --only runs stay in the table
-            rows.append(json.loads(saved.read_text()))
+            rows.append(row)
     write_results(rows, args, load)
 
 
