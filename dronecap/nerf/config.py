@@ -86,6 +86,9 @@ class TrainConfig:
     # background colour (known), the far field for footage without either. Resolved once.
     far_field: str = "auto"
     far_init: float = 0.5  # the far field's colour in every direction before training, (0, 1)
+    # weight of the distortion loss (volrend.distortion, t in AABB diagonals) per ray: it
+    # gathers each ray's weight into one stretch (a surface) instead of fog along the ray
+    distortion: float = 0.0
     # --- data as the paper describes it (resolving against a dataset replaces them by the
     #     dataset's values; the GAP9 cost model uses these when no dataset is given) ------------
     resolution: int = 160  # image side in pixels
@@ -275,6 +278,7 @@ _RULES: dict[str, tuple[Any, str]] = {
     "lr_final_ratio": (lambda x, c: x > 0, "> 0"),
     "photometric_lr_ratio": (lambda x, c: x > 0, "> 0"),
     "far_init": (lambda x, c: 0 < x < 1, "in (0, 1)"),
+    "distortion": (lambda x, c: math.isfinite(x) and x >= 0, ">= 0"),
     "budget_mb": (lambda x, c: x > 0, "> 0"),
     "resolution": (lambda x, c: x >= 1, ">= 1"),
     "train_images": (lambda x, c: x >= 0, ">= 0"),

@@ -1,5 +1,9 @@
 """Test-view metrics: PSNR and SSIM with scikit-image on the stored resolution, and the
-exposure-matched PSNR (a test view's own exposure fitted away, see :func:`exposure_matched`)."""
+exposure-matched PSNR (a test view's own exposure fitted away, see :func:`exposure_matched`).
+
+With a camera model (:meth:`dronecap.nerf.photometric.Photometric.recorded`) the scores are of
+the render as the camera records it (lens vignetting, the view's exposure predicted from its
+neighbours in time); ``psnr_radiance`` keeps the score of the plain render."""
 
 from __future__ import annotations
 
@@ -12,6 +16,8 @@ from dronecap.datasets.format import Dataset, Intrinsics
 from dronecap.progress import progress_bar
 
 RenderFn = Callable[[np.ndarray, Intrinsics], np.ndarray]  # (c2w, K) -> float32 [H, W, C]
+# (frame index, render [H, W, C]) -> what the camera recorded of it [H, W, C]
+RecordFn = Callable[[int, np.ndarray], np.ndarray]
 
 
 def ground_truth(ds: Dataset, i: int, background: tuple[float, ...]) -> np.ndarray:
@@ -47,11 +53,17 @@ def exposure_matched_psnr(pred: np.ndarray, gt: np.ndarray) -> float:
 
 def scores_line(test: dict) -> str:
     """The one-line summary the commands print of an evaluation result (:func:`evaluate_views`):
-    PSNR, the exposure-matched PSNR when recorded, SSIM and the view count."""
-    matched = test.get("psnr_exposure_matched")
+    PSNR, the exposure-matched PSNR when recorded, the plain render's PSNR when the camera
+    model changed it, SSIM and the view count."""
     psnr = f"test PSNR {test['psnr']:.2f} dB"
-    if matched is not None:
-        psnr += f" (exposure-matched {matched:.2f})"
+    others = []
+    if test.get("psnr_exposure_matched") is not None:
+        others.append(f"exposure-matched {test['psnr_exposure_matched']:.2f}")
+    radiance = test.get("psnr_radiance")
+    if radiance is not None and abs(radiance - test["psnr"]) >= 0.005:
+        others.append(f"render alone {radiance:.2f}")
+    if others:
+        psnr += f" ({', '.join(others)})"
     return f"{psnr}, SSIM {test['ssim']:.3f} over {test['views']} views"
 
 
@@ -73,6 +85,7 @@ def evaluate_views(
     views=None,
     progress: bool = False,
     keep_images: bool = False,
+    record: RecordFn | None = None,
 ) -> dict:
     """Render and score views of ``ds``.
 
@@ -82,26 +95,34 @@ def evaluate_views(
         background: colour the ground truth is composited on (and the renders use).
         views: frame indices (default: all test views, see :func:`test_views`).
         keep_images: also return the renders under "images".
+        record: the camera model: PSNR and SSIM score ``record(i, render)`` (None: the
+            render itself).
 
     Returns:
-        {"psnr": mean, "ssim": mean, "psnr_exposure_matched": mean, "views": n,
-        "per_view": [{"index", "psnr", "ssim", "psnr_exposure_matched"}]}; the exposure-matched
-        PSNR scores each render after the least-squares per-channel gain to its ground truth
-        (:func:`exposure_matched`: a real test view has its own exposure).
+        {"psnr": mean, "ssim": mean, "psnr_exposure_matched": mean, "psnr_radiance": mean,
+        "ssim_radiance": mean, "views": n, "per_view": [{the same per view, "index"}]}; the
+        exposure-matched PSNR scores each render after the least-squares per-channel gain to
+        its ground truth (:func:`exposure_matched`: a real test view has its own exposure),
+        ``psnr_radiance`` / ``ssim_radiance`` the render itself (= ``psnr`` / ``ssim``
+        without ``record``: what to compare with noise-free renders of the scene).
     """
     idx = test_views(ds) if views is None else np.asarray(views, np.int64)
     per_view, images = [], []
     for i in progress_bar(idx, desc="evaluate", unit="view", disable=not progress):
         pred = render(ds.poses[i], ds.camera_of(i))
         gt = ground_truth(ds, int(i), background)
-        p, s = image_metrics(pred, gt)
-        matched = exposure_matched_psnr(pred, gt)
-        per_view.append({"index": int(i), "psnr": p, "ssim": s, "psnr_exposure_matched": matched})
+        p, s = image_metrics(pred if record is None else record(int(i), pred), gt)
+        p_alone, s_alone = (p, s) if record is None else image_metrics(pred, gt)
+        per_view.append({
+            "index": int(i), "psnr": p, "ssim": s,
+            "psnr_exposure_matched": exposure_matched_psnr(pred, gt),
+            "psnr_radiance": p_alone, "ssim_radiance": s_alone,
+        })  # fmt: skip
         if keep_images:
             images.append(pred)
     out = {
         key: float(np.mean([v[key] for v in per_view])) if per_view else float("nan")
-        for key in ("psnr", "ssim", "psnr_exposure_matched")
+        for key in ("psnr", "ssim", "psnr_exposure_matched", "psnr_radiance", "ssim_radiance")
     } | {
         "views": len(per_view),
         "per_view": per_view,

@@ -15,13 +15,17 @@ learn as scene content:
   image corner (0 at the principal point, 1 at the farthest corner).
 
 Both multiply the rendered colour after compositing the background (the camera saw all of it)
-and before the loss, during training only: renders and evaluation use the field alone (the
-scene's radiance at the reference exposure, no vignetting). The parameters are the drone's
-own, never part of the exchanged or costed network.
+and before the loss. Renders use the field alone (the scene's radiance at the reference
+exposure, no vignetting). A test view is scored as the camera recorded it
+(:meth:`Photometric.recorded`): the render times the learned vignetting of its lens and the
+exposure of its moment, interpolated in capture time between the same drone's training frames
+(auto exposure drifts smoothly; no test pixel is used). The parameters are the drone's own,
+never part of the exchanged or costed network.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -132,3 +136,41 @@ class Photometric(nn.Module):
             return False
         self.log_gain = nn.Parameter(self.log_gain.new_zeros(n_frames, self.channels))
         return True
+
+    @torch.no_grad()
+    def recorded(
+        self,
+        image: np.ndarray,
+        camera: Camera,
+        when: tuple[float, int] | None,
+        frames: tuple[np.ndarray, np.ndarray] | None,
+    ) -> np.ndarray:
+        """What the camera recorded of a rendered view, clipped to [0, 1].
+
+        Args:
+            image: float32 [H, W, C] render (the scene at the reference exposure).
+            camera: the view's camera (its principal point centres the vignetting).
+            when: (capture time s, drone) of the view, or None (reference exposure).
+            frames: (capture times s [N], drones [N]) of the training frames, in the order of
+                the gain table's rows, or None (reference exposure).
+
+        Returns:
+            float32 [H, W, C]: ``image`` times the vignetting factor (when learned) and the
+            view's gain (when exposure is learned and the view has training frames of its
+            drone: the log-gain linearly interpolated in time, held at the first and last).
+        """
+        out = image.astype(np.float32)
+        if self.vignette is not None:
+            h, w = image.shape[:2]
+            v, u = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+            radius = normalized_radius(u.reshape(-1), v.reshape(-1), camera)
+            out = out * self.falloff(radius).reshape(h, w, 1).numpy()
+        if self.log_gain is not None and when is not None and frames is not None:
+            times, drones = frames
+            mine = np.flatnonzero(drones == when[1])
+            if times.shape[0] == self.log_gain.shape[0] and mine.size:
+                order = mine[np.argsort(times[mine], kind="stable")]
+                log_gain = torch.log(self.gains()).numpy()[order]  # [M, C]
+                at = [np.interp(when[0], times[order], g) for g in log_gain.T]  # [C]
+                out = out * np.exp(np.asarray(at, np.float32))
+        return np.clip(out, 0.0, 1.0)

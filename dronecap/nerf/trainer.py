@@ -38,7 +38,7 @@ from .photometric import Photometric
 from .rays import frame_cameras, ray_aabb
 from .render import Volume, render_rays, render_view
 from .resolve import Resolved, resolve, training_frames
-from .volrend import render_packed
+from .volrend import distortion, render_packed
 
 MAX_BAD_STEPS = 20  # consecutive non-finite steps before training stops
 PHOTOMETRIC_GROUP = 2  # index of the photometric parameters' Adam group (when it has any)
@@ -195,8 +195,9 @@ class Trainer:
         self.samples_per_ray = max(s.n / n_rays, 0.01)
         return whole_rays(rays, s, cfg.batch_samples)
 
-    def _render_rays(self, origins, dirs, s: Samples, bg):
-        """Colour [R, C] of rays through the field (with autograd)."""
+    def _render_rays(self, origins, dirs, s: Samples, bg) -> tuple[torch.Tensor, torch.Tensor]:
+        """Colour [R, C] of rays through the field (with autograd) and each ray's distortion
+        [R] in units of the AABB diagonal (zeros when the ``distortion`` weight is 0)."""
         field = self.field
         dir_enc = field.dir_encoding(dirs)  # once per ray, gathered per sample
 
@@ -206,9 +207,13 @@ class Trainer:
             return field.color_from_encoding(geo, dir_enc[ri]), sigma
 
         behind = field.behind(dirs, bg)  # the far field or the fixed background
-        s_args = (s.t_starts, s.t_ends, s.ray_indices, origins.shape[0])
-        color, _, _ = render_packed(*s_args, color_sigma, behind)
-        return color
+        n_rays = origins.shape[0]
+        out = render_packed(s.t_starts, s.t_ends, s.ray_indices, n_rays, color_sigma, behind)
+        if self.cfg.distortion <= 0:
+            return out.color, out.color.new_zeros(n_rays)
+        scale = float(torch.linalg.norm(self.aabb[1] - self.aabb[0]))
+        t0, t1 = s.t_starts / scale, s.t_ends / scale
+        return out.color, distortion(out.weights, t0, t1, s.ray_indices, n_rays)
 
     def accumulate_gradients(self, rays: RayBatch, s: Samples) -> float:
         """Forward/backward of a batch tile by tile, accumulating into ``.grad``.
@@ -230,9 +235,10 @@ class Trainer:
             tile = Samples(
                 s.ray_indices[sa:sb] - a, s.t_starts[sa:sb], s.t_ends[sa:sb], s.counts[a:b]
             )
-            color = self._render_rays(rays.origins[a:b], rays.dirs[a:b], tile, rays.bg[a:b])
+            color, spread = self._render_rays(rays.origins[a:b], rays.dirs[a:b], tile, rays.bg[a:b])
             seen = self.photometric(color, rays.frame[a:b], rays.radius[a:b])
             loss = huber_sum(seen, rays.target[a:b]) / (n_rays * c)
+            loss = loss + self.cfg.distortion * spread.sum() / n_rays
             loss.backward()
             total += float(loss.detach())
         return total
@@ -432,18 +438,29 @@ class Trainer:
         """Colours [R, C] of rays [R, 3] (:func:`nerf.render.render_rays`)."""
         return render_rays(self.volume(), origins, dirs, background, **thresholds)
 
-    def evaluate(self, test: Dataset, views=None, progress: bool = False) -> dict:
+    def evaluate(
+        self, test: Dataset, views=None, progress: bool = False, keep_images: bool = False
+    ) -> dict:
         """PSNR/SSIM (scikit-image, stored resolution) of test views against ground truth
-        composited on the dataset background: {"psnr", "ssim", "per_view": [...]}."""
+        composited on the dataset background, each render as the camera recorded it
+        (:meth:`Photometric.recorded`; the training frames' times are ``test``'s own):
+        {"psnr", "ssim", "psnr_radiance", "per_view": [...]} (:func:`evaluate_views`)."""
         from .evaluate import evaluate_views
 
-        return evaluate_views(self.render, test, self.scene.background, views, progress)
+        drones, times = test.drones(), test.timestamps
+        train = np.zeros(0, np.int64) if test.split is None else np.flatnonzero(test.split == 0)
+        frames = (times[train], drones[train]) if times is not None and train.size else None
+
+        def record(i: int, image: np.ndarray) -> np.ndarray:
+            when = None if times is None else (float(times[i]), int(drones[i]))
+            return self.photometric.recorded(image, test.camera_of(i), when, frames)
+
+        args = (self.render, test, self.scene.background, views, progress, keep_images, record)
+        return evaluate_views(*args)
 
     def evaluate_all(self, test: Dataset, progress: bool = False) -> dict:
         """:meth:`evaluate` on all test views, keeping the renders under "images"."""
-        from .evaluate import evaluate_views
-
-        return evaluate_views(self.render, test, self.scene.background, None, progress, True)
+        return self.evaluate(test, None, progress, keep_images=True)
 
     def parameter_count(self) -> int:
         """Trainable parameters (hash table + MLPs + far field)."""

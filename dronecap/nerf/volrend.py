@@ -10,12 +10,22 @@ on earlier rays do not wipe out the precision of later rays' sums.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 # (t_starts [S], t_ends [S], ray_indices [S]) -> (colors [S, C], sigmas [S])
 ColorSigmaFn = Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]
+
+
+class Rendered(NamedTuple):
+    """What :func:`render_packed` returns for R rays of S packed samples."""
+
+    color: Tensor  # [R, C] composited on the background
+    opacity: Tensor  # [R] sum of the weights
+    depth: Tensor  # [R] expected distance (0 for empty rays)
+    weights: Tensor  # [S] rendering weight of each sample
 
 
 def packed_weights(tau: Tensor, ray_indices: Tensor, n_rays: int) -> tuple[Tensor, Tensor]:
@@ -53,7 +63,7 @@ def render_packed(
     n_rays: int,
     color_sigma_fn: ColorSigmaFn,
     background: Tensor,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> Rendered:
     """Render packed samples.
 
     Args:
@@ -64,7 +74,7 @@ def render_packed(
         background: [R, C] or [C] colour behind each ray.
 
     Returns:
-        color [R, C], opacity [R], depth [R] (expected distance; 0 for empty rays).
+        :class:`Rendered` (colour, opacity, depth per ray; weight per sample).
     """
     colors, sigmas = color_sigma_fn(t_starts, t_ends, ray_indices)
     weights, _ = packed_weights(sigmas * (t_ends - t_starts), ray_indices, n_rays)
@@ -72,4 +82,35 @@ def render_packed(
     opacity = accumulate(weights, ray_indices, n_rays)
     depth = accumulate(weights * 0.5 * (t_starts + t_ends), ray_indices, n_rays)
     bg = background.expand(n_rays, -1) if background.ndim == 1 else background
-    return rgb + (1.0 - opacity).unsqueeze(-1) * bg, opacity, depth
+    return Rendered(rgb + (1.0 - opacity).unsqueeze(-1) * bg, opacity, depth, weights)
+
+
+def distortion(
+    weights: Tensor, t_starts: Tensor, t_ends: Tensor, ray_indices: Tensor, n_rays: int
+) -> Tensor:
+    """Per-ray distortion (Mip-NeRF 360, Barron et al. 2022) of packed samples -> [R].
+
+    ``sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 d_i`` with ``m`` the interval midpoints
+    and ``d`` their lengths (the units of ``t``): small when a ray's weight sits in one short
+    stretch (a surface), large when it is spread along the ray (fog). The double sum is
+    ``2 sum_i w_i (m_i W_i - S_i)`` with ``W_i``, ``S_i`` the sums of ``w_j`` and ``w_j m_j``
+    over the ray's earlier samples (samples ordered along each ray), so it costs O(S).
+
+    Args:
+        weights: [S] rendering weights (:func:`packed_weights`).
+        t_starts, t_ends: [S] sample intervals.
+        ray_indices: [S] ray of each sample, non-decreasing.
+        n_rays: R.
+    """
+    mid = 0.5 * (t_starts + t_ends)
+    w = weights.double()
+    wm = w * mid.double()
+
+    def earlier(x: Tensor) -> Tensor:  # sum over the same ray's earlier samples, [S]
+        total = torch.zeros(n_rays + 1, dtype=x.dtype, device=x.device)
+        total.index_add_(0, ray_indices + 1, x)
+        return torch.cumsum(x, 0) - x - torch.cumsum(total, 0)[:-1][ray_indices]
+
+    pairs = 2.0 * w * (mid.double() * earlier(w) - earlier(wm))
+    own = w * w * (t_ends - t_starts).double() / 3.0
+    return accumulate((pairs + own).float(), ray_indices, n_rays)

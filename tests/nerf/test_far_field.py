@@ -84,7 +84,7 @@ def test_composite_is_box_plus_exit_transmittance_times_far():
     box = torch.full((4, 1), 0.25)
     for sigma, want in [(0.0, behind), (1e30, torch.full((2, 1), 0.25))]:
         sig = torch.full((4,), sigma)
-        color, _, _ = render_packed(t0, t1, ri, 2, lambda *_: (box, sig), behind)  # noqa: B023
+        color = render_packed(t0, t1, ri, 2, lambda *_: (box, sig), behind).color  # noqa: B023
         torch.testing.assert_close(color, want)
 
 

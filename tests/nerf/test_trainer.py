@@ -15,8 +15,12 @@ def _cfg(**kw):
     return preset("test").replace(**({"batch_samples": 1024, "grid_res": 16} | kw))
 
 
-def _grads(tr: Trainer) -> list[torch.Tensor]:
-    return [p.grad.clone() for p in tr.field.parameters()]
+def _loss_and_grads(tr: Trainer, batch, **changes) -> tuple[float, list[torch.Tensor]]:
+    """The batch loss and the field's gradients of one batch under config ``changes``."""
+    tr.cfg = dataclasses.replace(tr.cfg, **changes)
+    tr.optimizer.zero_grad()
+    loss = tr.accumulate_gradients(*batch)
+    return loss, [p.grad.clone() for p in tr.field.parameters()]
 
 
 def test_tile_accumulation_equals_full_batch(cube_rgb):
@@ -25,17 +29,27 @@ def test_tile_accumulation_equals_full_batch(cube_rgb):
     tr.train(3)  # leave the all-occupied start
     batch = tr._march_batch()
     assert batch[1].n > 600  # enough samples for several tiles
-    tr.optimizer.zero_grad()
-    full = tr.accumulate_gradients(*batch)
-    g_full = _grads(tr)
-    tr.cfg = dataclasses.replace(tr.cfg, tile_samples=128)
-    tr.optimizer.zero_grad()
-    tiled = tr.accumulate_gradients(*batch)
-    g_tiled = _grads(tr)
+    full, g_full = _loss_and_grads(tr, batch)
+    tiled, g_tiled = _loss_and_grads(tr, batch, tile_samples=128)
     assert abs(full - tiled) < 1e-6 * max(1.0, abs(full))
     for a, b in zip(g_full, g_tiled, strict=True):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-9)
     assert any(g.abs().sum() > 0 for g in g_full)
+
+
+def test_distortion_weight_adds_each_rays_spread_to_the_loss(cube_rgb):
+    """The same batch costs more with the distortion term on, by exactly its weight times
+    the rays' mean distortion, and its gradients reach the field."""
+    tr = Trainer(_cfg(batch_samples=2048, tile_samples=512, mlp_dtype="fp32"), cube_rgb)
+    tr.train(3)
+    batch = tr._march_batch()
+    plain, g_plain = _loss_and_grads(tr, batch)
+    with_term, g_with = _loss_and_grads(tr, batch, distortion=0.5)
+    rays, s = batch
+    _, spread = tr._render_rays(rays.origins, rays.dirs, s, rays.bg)
+    assert with_term > plain
+    assert abs(with_term - plain - 0.5 * float(spread.mean())) < 1e-5 * max(1.0, with_term)
+    assert any(not torch.equal(a, b) for a, b in zip(g_plain, g_with, strict=True))
 
 
 def test_step_count_batch_size_and_learning(cube_rgb):
@@ -163,7 +177,7 @@ def test_render_rays_matches_packed_reference(cube_rgb, monkeypatch):
     with torch.no_grad():
         t_near, t_far, _ = ray_aabb(origins, dirs, tr.aabb)
         s = tr.march(origins, dirs, t_near, t_far, tr.step_size, tr.grid, tr.aabb, 1 << 20)
-        ref = tr._render_rays(origins, dirs, s, bg).clamp(0, 1)
+        ref = tr._render_rays(origins, dirs, s, bg)[0].clamp(0, 1)
     assert s.n > 0 and int(s.counts.max()) > 8  # some rays need several rounds
     exact = dict(min_transmittance=0.0, min_weight=0.0)
     default = tr.render_rays(origins, dirs, bg)

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from dronecap.nerf.volrend import packed_weights, render_packed
+from dronecap.nerf.volrend import distortion, packed_weights, render_packed
 
 
 def _render(sigmas, t0, t1, ri, n_rays, colors, bg):
@@ -43,7 +43,7 @@ def test_extremes_finite_with_finite_gradients(density, dt):
     t0 = torch.arange(n, dtype=torch.float32) * dt
     ri = torch.zeros(n, dtype=torch.long)
     bg = torch.tensor([1.0, 0.0])
-    rgb, opacity, depth = _render(sig, t0, t0 + dt, ri, 1, col, bg)
+    rgb, opacity, depth, _ = _render(sig, t0, t0 + dt, ri, 1, col, bg)
     (rgb.sum() + opacity.sum() + depth.sum()).backward()
     for x in (rgb, opacity, depth, sig.grad, col.grad):
         assert torch.isfinite(x).all()
@@ -56,7 +56,39 @@ def test_extremes_finite_with_finite_gradients(density, dt):
 def test_empty_rays_render_background():
     bg = torch.tensor([[0.2], [0.7]])  # gray, per-ray background
     empty = torch.zeros(0)
-    rgb, opacity, _ = _render(
+    rgb, opacity, _, _ = _render(
         empty, empty, empty, torch.zeros(0, dtype=torch.long), 2, torch.zeros(0, 1), bg
     )
     assert torch.equal(rgb, bg) and torch.equal(opacity, torch.zeros(2))
+
+
+def test_distortion_matches_the_double_sum_and_prefers_one_surface():
+    """The O(S) form equals ``sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 d_i`` per ray
+    (rays of 3, 2, 1 and 0 samples), and weight spread along a ray costs more than the same
+    weight in one interval."""
+    gen = torch.Generator().manual_seed(0)
+    ri = torch.tensor([0, 0, 0, 1, 1, 2])
+    t0 = torch.tensor([0.1, 0.2, 0.5, 0.0, 0.3, 0.4])
+    t1 = t0 + torch.tensor([0.1, 0.2, 0.1, 0.3, 0.1, 0.2])
+    w = torch.rand(6, generator=gen)
+    got = distortion(w, t0, t1, ri, 4)
+    mid, width = (t0 + t1) / 2, t1 - t0
+    for r in range(4):
+        k = ri == r
+        pairs = (w[k][:, None] * w[k][None] * (mid[k][:, None] - mid[k][None]).abs()).sum()
+        assert abs(float(got[r]) - float(pairs + (w[k] ** 2 * width[k]).sum() / 3)) < 1e-6
+    spread = distortion(torch.full((4,), 0.25), torch.arange(4.0), torch.arange(4.0) + 1,
+                        torch.zeros(4, dtype=torch.long), 1)  # fmt: skip
+    one = distortion(torch.tensor([1.0]), torch.tensor([0.0]), torch.tensor([1.0]),
+                     torch.zeros(1, dtype=torch.long), 1)  # fmt: skip
+    assert spread[0] > one[0]
+
+
+def test_distortion_gradients_stay_finite_for_opaque_and_empty_rays():
+    tau = torch.tensor([1e4, 1e4, 0.0, 0.0, 30.0], requires_grad=True)
+    ri = torch.tensor([0, 0, 1, 1, 2])
+    t0 = torch.tensor([0.0, 0.1, 0.0, 0.5, 0.2])
+    w, _ = packed_weights(tau, ri, 3)
+    d = distortion(w, t0, t0 + 0.1, ri, 3)
+    d.sum().backward()
+    assert torch.isfinite(d).all() and torch.isfinite(tau.grad).all()
