@@ -193,7 +193,7 @@ def _sparse_record(
     res_prev = residual_file(folder, prev)
     residual = dict(np.load(res_prev)) if prev >= 0 and res_prev.exists() else {}
     arrays, residual = encode_update(
-        trainer.model_weights(), model, residual, s.sparse_rows, s.quant_bits
+        trainer.model_weights(), model, residual, s.sparse_rows, s.quant_bits, s.mlp_bits
     )
     with atomic_output(residual_file(folder, r)) as tmp:
         with open(tmp, "wb") as f:
@@ -224,11 +224,13 @@ def _poisoned(
 
 
 def start_local_round(trainer: Any, s: FedSettings) -> None:
-    """Set a drone's optimizer up for a round from the global model: its MLPs train at
-    ``s.local_mlp_lr`` times the schedule's learning rate, and with ``s.reset_adam`` the
-    model's Adam moments (and step counts) start from zero; the photometric model's, the
-    drone's own, are kept."""
-    trainer.mlp_lr_ratio = s.local_mlp_lr
+    """Set a drone's optimizer up for a round from the global model: its hash table trains at
+    ``s.local_lr`` times the schedule's learning rate, its MLPs at ``s.local_lr *
+    s.local_mlp_lr`` times, and with ``s.reset_adam`` the model's Adam moments (and step
+    counts) start from zero; the photometric model's, the drone's own, are kept."""
+    from dronecap.nerf.trainer import MLP_GROUP, TABLE_GROUP
+
+    trainer.group_lr_ratio = {TABLE_GROUP: s.local_lr, MLP_GROUP: s.local_lr * s.local_mlp_lr}
     if s.reset_adam:
         for p in trainer.field.parameters():
             trainer.optimizer.state.pop(p, None)

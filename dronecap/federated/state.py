@@ -41,6 +41,7 @@ class FedSettings:
     transfer_dtype: str = "fp32"  # "fp32" or "fp16" for the floating arrays on the wire
     compress: bool = False  # lossless shuffle + deflate of every array on the wire (fedavg.py)
     quant_bits: int = 0  # 8 or 4: sparse quantised updates (sparse.py); 0: whole arrays
+    mlp_bits: int = 8  # with quant_bits: bits of the MLPs' change (8 or 4)
     sparse_rows: float = 1.0  # with quant_bits: fraction of hash-table rows a drone sends
     down_rows: float = 0.0  # with quant_bits: fraction of table rows of the global model's
     # change broadcast each round (downlink.py); 0: the whole model is broadcast
@@ -48,6 +49,7 @@ class FedSettings:
     server_lr: float = 1.0  # FedAvgM server step size (1 with momentum 0: plain FedAvg)
     server_momentum: float = 0.0  # FedAvgM server momentum
     table_step: str = "server"  # hash table: "server" step like the MLPs, or "mean" (lr 1)
+    local_lr: float = 1.0  # drones' model lr in rounds >= 1 over the schedule's
     local_mlp_lr: float = 1.0  # drones' MLP lr in rounds >= 1 over the schedule's (0: fixed)
     reset_adam: bool = False  # drones drop the model's Adam moments at the start of each round
     drift_correction: bool = False  # SCAFFOLD on the MLPs (fedavg.drift_correction)
