@@ -91,25 +91,6 @@ class Settings(Base):
         "change), or the FedAvgM server step as the MLPs (default mean: +0.86 dB on a swarm's "
         "drone shards, benchmarks/results/federated_swarm.md)",
     )
-    local_lr: float = setting(
-        1.0,
-        minimum=1e-6,
-        help="drones' learning rate in the rounds, times the schedule's (default 1)",
-    )
-    local_mlp_lr: float = setting(
-        1.0,
-        minimum=0.0,
-        help="drones' MLP learning rate in the rounds, times the schedule's (0: MLPs fixed after "
-        "the pretraining; default 1)",
-    )
-    reset_adam: bool = setting(
-        False, help="drones start every round with fresh Adam moments for the model"
-    )
-    drift_correction: bool = setting(
-        False,
-        help="SCAFFOLD on the MLPs: each local step also moves a drone's MLPs by the drones' "
-        "mean change minus its own of the last round, over --local-steps",
-    )
     baselines: bool = setting(
         False, help="also train centralized and single-drone baselines on the same step budget"
     )

@@ -35,7 +35,6 @@ if TYPE_CHECKING:
 
 MODEL = "model/"
 GRID = "grid/"
-CONTROL = "control/"  # broadcast with drift correction: the drones' mean MLP change last round
 TRANSFER_DTYPES = {"fp32": np.float32, "fp16": np.float16}
 WEIGHT_KEY = "num-examples"  # MetricRecord key FedAvg weights by: the drone's train images
 
@@ -179,10 +178,7 @@ class DroneFedAvg(FedAvgM):
     global model ``self.current_arrays`` (set by :meth:`resume`); defaults (1, 0) are plain
     FedAvg. With ``table_step`` "mean" the hash table skips that step and takes the mean change
     itself: a row seen by one drone (visibility-weighted, a swarm's drone shards) is that drone's
-    own change, which a server step of 2 would double. With ``drift_correction`` the drones'
-    weighted mean change of every non-table model array (the MLPs) is kept as
-    ``self.control`` and broadcast with the next round's model under :data:`CONTROL` (SCAFFOLD's
-    server control variate, in the displacement form of :func:`drift_correction`). After each
+    own change, which a server step of 2 would double. After each
     ``configure_train``/``aggregate_train``, ``self.last_round`` holds
     ``bytes_down`` (per destination node), ``bytes_up`` (per replying node) and ``failed``
     (node id -> reason).
@@ -193,7 +189,6 @@ class DroneFedAvg(FedAvgM):
         visibility: bool = False,
         downlink: Downlink | None = None,
         table_step: str = "server",
-        drift_correction: bool = False,
         **kwargs: Any,
     ) -> None:
         kwargs.setdefault("weighted_by_key", WEIGHT_KEY)
@@ -202,8 +197,6 @@ class DroneFedAvg(FedAvgM):
         self.visibility = visibility
         self.downlink = downlink
         self.table_step = table_step
-        self.drift_correction = drift_correction
-        self.control: dict[str, np.ndarray] = {}  # CONTROL + name -> float32 mean MLP change
         self.known_examples: dict[int, int] = {}
         self.base: dict[str, np.ndarray] = {}
         self.last_round: dict[str, Any] = {"bytes_down": {}, "bytes_up": {}, "failed": {}}
@@ -215,10 +208,8 @@ class DroneFedAvg(FedAvgM):
         start from (their updates are decoded against it)."""
         from dronecap.federated.downlink import BASE_KEY
 
-        self.base = {k: v.astype(np.float32) for k, v in from_record(arrays).items()}
-        if self.control:
-            arrays = ArrayRecord({**dict(arrays.items()), **dict(to_record(self.control).items())})
         messages = list(super().configure_train(server_round, arrays, config, grid))
+        self.base = {k: v.astype(np.float32) for k, v in from_record(arrays).items()}
         if self.downlink is not None:
             self.base.update({MODEL + k: v for k, v in self.downlink.replica.items()})
             for m in messages:
@@ -262,9 +253,6 @@ class DroneFedAvg(FedAvgM):
         weights = {n: float(known[n]) for n in ok}
         vis = {n: masks[n] for n in ok} if self.visibility else {}
         avg = masked_mean(deltas, weights, vis)
-        if self.drift_correction:
-            shared = [k for k in avg if k.startswith(MODEL) and k != MODEL + TABLE]
-            self.control = {CONTROL + k[len(MODEL) :]: avg[k].astype(np.float32) for k in shared}
         x = from_record(self.current_arrays) if self.current_arrays is not None else base
         new = self._server_step(x, {k: (x[k] + avg[k]).astype(np.float32) for k in base})
         if self.downlink is not None:  # the global model is what the drones will hold
@@ -296,43 +284,18 @@ class DroneFedAvg(FedAvgM):
         }
 
     def server_state(self) -> dict[str, np.ndarray]:
-        """The server optimizer's momentum ``{name: array}`` and the drift-correction control
-        ``{CONTROL + name: array}`` (each empty when there is none yet), to save beside the
-        global model for a resume."""
-        state = dict(self.control)
-        if self.momentum_vector is not None and self.current_arrays is not None:
-            state.update(zip(self.current_arrays.keys(), self.momentum_vector, strict=True))
-        return state
+        """The server optimizer's momentum ``{name: array}`` (empty before the first step or
+        without momentum), to save beside the global model for a resume."""
+        if self.momentum_vector is None or self.current_arrays is None:
+            return {}
+        return dict(zip(self.current_arrays.keys(), self.momentum_vector, strict=True))
 
-    def resume(self, current: Mapping[str, np.ndarray], state: Mapping[str, np.ndarray]) -> None:
+    def resume(self, current: Mapping[str, np.ndarray], momentum: Mapping[str, np.ndarray]) -> None:
         """Start or continue a run from the float32 global model ``current`` (not its fp16 or
-        compressed wire copy) and the saved server ``state`` (:meth:`server_state`; empty:
-        none)."""
+        compressed wire copy) and the saved ``momentum`` (:meth:`server_state`; empty: none)."""
         self.base = {k: np.asarray(v, np.float32) for k, v in current.items()}
         self.current_arrays = to_record(self.base)
-        momentum = [np.asarray(state[k]) for k in current if k in state]
-        self.momentum_vector = momentum if len(momentum) == len(current) else None
-        self.control = {k: np.asarray(v) for k, v in state.items() if k.startswith(CONTROL)}
-
-
-def drift_correction(
-    control: Mapping[str, np.ndarray], own: Mapping[str, np.ndarray], steps: int
-) -> dict[str, np.ndarray]:
-    """A drone's per-step MLP correction (SCAFFOLD, Karimireddy et al. 2020, option II).
-
-    ``control``: the server's broadcast, ``{CONTROL + name: mean MLP change}`` of the previous
-    round; ``own``: ``{name: this drone's own change}`` of that round; ``steps``: N_l. SCAFFOLD
-    adds ``c - c_i`` to every local gradient, which over N_l SGD steps of size eta moves the
-    weights by ``mean change - own change``; in that displacement form it does not depend on
-    the optimizer (Adam here): ``{name: (mean - own) / steps}`` [shape of the array], added to
-    the weights after every local step. Empty when either side is missing."""
-    if not control or not own:
-        return {}
-    return {
-        name: (np.asarray(control[CONTROL + name], np.float32) - own[name]) / steps
-        for name in own
-        if CONTROL + name in control
-    }
+        self.momentum_vector = [np.asarray(momentum[k]) for k in current] if momentum else None
 
 
 def decode_reply(

@@ -9,8 +9,7 @@ interrupted run resumes where it stopped:
     RUN/federation.json              settings (shards, config, schedule) -- written by the driver
     RUN/clients/client_K/round_RRR.pt  drone K's trainer after round RRR (weights, grid, Adam)
     RUN/global/round_RRR.pt          global model after round RRR (round 0 = coordinator's pretrain)
-    RUN/global/momentum_RRR.npz      server state after round RRR: FedAvgM momentum, drift control
-    RUN/clients/client_K/change_RRR.npz  drone K's own MLP change in round RRR (drift correction)
+    RUN/global/momentum_RRR.npz      server momentum after round RRR (FedAvgM runs only)
     RUN/rounds.json                  per-round PSNR, bytes per direction, link time, failures
     RUN/checkpoint.pt                final global model (``Trainer.load``-able)
 
@@ -56,24 +55,20 @@ from flwr.serverapp import Grid, ServerApp
 from dronecap.datasets.format import open_dataset
 from dronecap.federated.downlink import Downlink, broadcast, receive
 from dronecap.federated.fedavg import (
-    CONTROL,
     MODEL,
     WEIGHT_KEY,
     DroneFedAvg,
-    drift_correction,
     from_record,
     pack_update,
     payload_bytes,
     to_record,
     unpack_update,
 )
-from dronecap.federated.sparse import TABLE
 from dronecap.federated.state import (
     EVERY_CLIENT,
     FINAL,
     FederationFailed,
     FedSettings,
-    change_file,
     client_dir,
     latest_round,
     load_momentum,
@@ -142,28 +137,15 @@ def _local_round(msg: Message, context: Context, pretrain: bool) -> Message:
     else:
         trainer = Trainer(s.train_config(), train)
     received = {} if pretrain else receive(msg.content, folder, r)
-    control = {key: received.pop(key) for key in list(received) if key.startswith(CONTROL)}
-    correction: dict[str, np.ndarray] = {}
     if not pretrain:
         install_global(trainer, received, rebuild=prev < 0)
         if prev < 0:
             trainer.step = s.pretrain  # join the coordinator's learning-rate schedule
-        start_local_round(trainer, s)
-        if s.drift_correction and prev == r - 1 and change_file(folder, prev).exists():
-            with np.load(change_file(folder, prev)) as z:
-                own = {name: z[name] for name in z.files}
-            correction = drift_correction(control, own, s.local_steps)
     t0 = time.perf_counter()
-    train_corrected(trainer, s.pretrain if pretrain else s.local_steps, correction)
+    trainer.train(s.pretrain if pretrain else s.local_steps)
     train_s = time.perf_counter() - t0
     with atomic_output(round_file(folder, r)) as tmp:
         trainer.save(tmp)
-    if s.drift_correction and not pretrain:
-        model, local = unpack_update(received)[0], trainer.model_weights()
-        change = {name: local[name] - model[name] for name in model if name != TABLE}
-        with atomic_output(change_file(folder, r)) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **change)
     grid = trainer.grid_state() if s.exchange_grid else None
     if pretrain or not s.quant_bits:
         record = to_record(pack_update(trainer.model_weights(), grid, s.transfer_dtype), s.compress)
@@ -221,38 +203,6 @@ def _poisoned(
     else:
         raise ValueError(f"unknown poison {how!r}: nan, huge or count")
     return to_record(pack_update(bad, None, "fp32")), metrics
-
-
-def start_local_round(trainer: Any, s: FedSettings) -> None:
-    """Set a drone's optimizer up for a round from the global model: its hash table trains at
-    ``s.local_lr`` times the schedule's learning rate, its MLPs at ``s.local_lr *
-    s.local_mlp_lr`` times, and with ``s.reset_adam`` the model's Adam moments (and step
-    counts) start from zero; the photometric model's, the drone's own, are kept."""
-    from dronecap.nerf.trainer import MLP_GROUP, TABLE_GROUP
-
-    trainer.group_lr_ratio = {TABLE_GROUP: s.local_lr, MLP_GROUP: s.local_lr * s.local_mlp_lr}
-    if s.reset_adam:
-        for p in trainer.field.parameters():
-            trainer.optimizer.state.pop(p, None)
-
-
-def train_corrected(trainer: Any, steps: int, correction: dict[str, np.ndarray]) -> None:
-    """Train ``steps`` steps; after each, add ``correction`` ``{weight name: array}`` (the
-    per-step drift correction, :func:`~dronecap.federated.fedavg.drift_correction`; empty:
-    plain ``trainer.train``) to those weights."""
-    import torch
-
-    if not correction:
-        trainer.train(steps)
-        return
-    params = dict(trainer.field.named_parameters())
-    add = [(params[name], torch.as_tensor(v)) for name, v in correction.items()]
-    trainer.field.train()
-    for _ in range(steps):
-        trainer.train_step()
-        with torch.no_grad():
-            for p, d in add:
-                p.add_(d)
 
 
 def install_global(trainer: Any, update: dict[str, np.ndarray], rebuild: bool) -> None:
@@ -350,7 +300,6 @@ def serve(grid: Grid, run_dir: Path) -> None:
         visibility=s.visibility,
         downlink=downlink,
         table_step=s.table_step,
-        drift_correction=s.drift_correction,
     )
     strategy.known_examples = {
         node: len(open_dataset(s.shards[k]).indices("train")) for k, node in nodes.items()

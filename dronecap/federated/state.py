@@ -49,10 +49,6 @@ class FedSettings:
     server_lr: float = 1.0  # FedAvgM server step size (1 with momentum 0: plain FedAvg)
     server_momentum: float = 0.0  # FedAvgM server momentum
     table_step: str = "server"  # hash table: "server" step like the MLPs, or "mean" (lr 1)
-    local_lr: float = 1.0  # drones' model lr in rounds >= 1 over the schedule's
-    local_mlp_lr: float = 1.0  # drones' MLP lr in rounds >= 1 over the schedule's (0: fixed)
-    reset_adam: bool = False  # drones drop the model's Adam moments at the start of each round
-    drift_correction: bool = False  # SCAFFOLD on the MLPs (fedavg.drift_correction)
     eval_views: int = 0  # test views for the per-round PSNR (0: all)
     round_timeout: float = 3600.0  # seconds the server waits for a round's replies
     fail_client: int = -1  # fault injection: this partition (EVERY_CLIENT: all) raises ...
@@ -119,11 +115,6 @@ def round_file(folder: Path, r: int) -> Path:
 def residual_file(folder: Path, r: int) -> Path:
     """``folder/residual_RRR.npz``: a drone's error-feedback residual after round ``r``."""
     return Path(folder) / f"residual_{r:03d}.npz"
-
-
-def change_file(folder: Path, r: int) -> Path:
-    """``folder/change_RRR.npz``: a drone's own MLP change in round ``r`` (drift correction)."""
-    return Path(folder) / f"change_{r:03d}.npz"
 
 
 def latest_round(folder: Path, before: int) -> int:

@@ -41,8 +41,6 @@ from .resolve import Resolved, resolve, training_frames
 from .volrend import render_packed
 
 MAX_BAD_STEPS = 20  # consecutive non-finite steps before training stops
-TABLE_GROUP = 0  # index of the hash table's (and far field's) Adam group
-MLP_GROUP = 1  # index of the MLP weights' Adam group
 PHOTOMETRIC_GROUP = 2  # index of the photometric parameters' Adam group (when it has any)
 
 
@@ -111,8 +109,6 @@ class Trainer:
         )
         self.grid = occupancy.init_state(self.grid_cfg, self.device)
         self.step, self.train_seconds = 0, 0.0
-        self.group_lr_ratio: dict[int, float] = {}  # Adam group -> lr over the schedule's
-        # (a federated drone's local rounds; not saved)
         self.samples_per_ray = float(min(cfg.max_samples_per_ray, cfg.march_steps))
         self.images = None
         self.camera: Camera | None = None
@@ -264,9 +260,8 @@ class Trainer:
                 self.generator,
             )
         lr = self._lr(self.step)
-        ratio = {PHOTOMETRIC_GROUP: self.cfg.photometric_lr_ratio, **self.group_lr_ratio}
         for i, group in enumerate(self.optimizer.param_groups):
-            group["lr"] = lr * ratio.get(i, 1.0)
+            group["lr"] = lr * (self.cfg.photometric_lr_ratio if i == PHOTOMETRIC_GROUP else 1.0)
         rays, s = self._march_batch()
         self.optimizer.zero_grad(set_to_none=False)
         loss = self.accumulate_gradients(rays, s)
