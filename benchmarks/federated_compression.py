@@ -64,7 +64,15 @@ def _cli_default() -> dict:
     from dronecap.commands.federate import Settings
 
     d = Settings()
-    names = ("quant_bits", "sparse_rows", "down_rows", "server_lr", "server_momentum", "table_step")
+    names = (
+        "quant_bits",
+        "mlp_bits",
+        "sparse_rows",
+        "down_rows",
+        "server_lr",
+        "server_momentum",
+        "table_step",
+    )
     return dict(visibility=not d.plain_average, **{n: getattr(d, n) for n in names})
 
 

@@ -175,7 +175,7 @@ def _sparse_record(
     res_prev = residual_file(folder, prev)
     residual = dict(np.load(res_prev)) if prev >= 0 and res_prev.exists() else {}
     arrays, residual = encode_update(
-        trainer.model_weights(), model, residual, s.sparse_rows, s.quant_bits
+        trainer.model_weights(), model, residual, s.sparse_rows, s.quant_bits, s.mlp_bits
     )
     with atomic_output(residual_file(folder, r)) as tmp:
         with open(tmp, "wb") as f:

@@ -163,13 +163,14 @@ def encode_update(
     residual: Mapping[str, np.ndarray],
     rows: float,
     bits: int,
+    mlp_bits: int = MLP_BITS,
 ) -> tuple[dict[str, Array], dict[str, np.ndarray]]:
     """A drone's sparse quantised update and its new residual.
 
     ``local``/``received``: ``{name: array}`` model weights after local training and as received
     (same keys and shapes); ``residual``: the previous residual (empty: none). The table sends
     the ``rows`` fraction of its rows at ``bits`` bits, other arrays all rows at
-    :data:`MLP_BITS`. Returns ``({name: Array}, {name: new residual})``.
+    ``mlp_bits`` (8 or 4). Returns ``({name: Array}, {name: new residual})``.
     """
     arrays: dict[str, Array] = {}
     new_residual: dict[str, np.ndarray] = {}
@@ -179,6 +180,6 @@ def encode_update(
             delta = delta + residual[name]
         table = name == TABLE
         chosen = select_rows(delta, rows if table else 1.0)
-        arrays[name], sent = encode_delta(delta, chosen, bits if table else MLP_BITS)
+        arrays[name], sent = encode_delta(delta, chosen, bits if table else mlp_bits)
         new_residual[name] = delta - sent
     return arrays, new_residual

@@ -52,8 +52,10 @@ def test_malformed_sparse_arrays_are_refused():
             decode_delta(bad)
 
 
-def test_error_feedback_loses_nothing_over_rounds():
-    """What a drone sent over the rounds plus its residual equals its true total change."""
+@pytest.mark.parametrize("mlp_bits", [8, 4])
+def test_error_feedback_loses_nothing_over_rounds(mlp_bits):
+    """What a drone sent over the rounds plus its residual equals its true total change, the
+    MLPs at 8 or 4 bits (the default) as well as the table."""
     rng = np.random.default_rng(1)
     received = {TABLE: np.zeros((400, 2), np.float32), "mlp": np.zeros((8, 4), np.float32)}
     residual: dict[str, np.ndarray] = {}
@@ -61,7 +63,8 @@ def test_error_feedback_loses_nothing_over_rounds():
     total_sent = {k: np.zeros_like(v, np.float64) for k, v in received.items()}
     for _ in range(5):
         local = {k: v + rng.normal(size=v.shape).astype(np.float32) for k, v in received.items()}
-        arrays, residual = encode_update(local, received, residual, rows=0.05, bits=4)
+        arrays, residual = encode_update(local, received, residual, 0.05, 4, mlp_bits)
+        assert arrays["mlp"].data[0] == mlp_bits  # the header's first byte: the bits
         for k in received:
             total_true[k] += local[k] - received[k]
             total_sent[k] += decode_delta(arrays[k])[0]
