@@ -67,6 +67,8 @@ OPTIONS: dict[str, dict] = {
         "chunk_ba_iterations": 10,
         "chunk_workers": 1,
     },
+    # fewer sequential pairs (loop pairs kept, from 7 frames apart)
+    "overlap 6": {"overlap": 6},
     # chunked mapping (sfm/chunks.py) above 200 usable frames, pinned as measured
     "chunked": {
         "chunk_above": 200,
