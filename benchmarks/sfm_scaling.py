@@ -58,6 +58,17 @@ OPTIONS: dict[str, dict] = {
     },
     "words loops": {"loop_pairs": "words", "chunk_above": 0},
     "global": {"mapper": "global", "chunk_above": 0},
+    # session 12's default (chunked mapping, chunks one after another), pinned; session 13
+    # changed these defaults. Not pinned: the bend check's RANSAC trials (a constant of
+    # sfm/bend.py, 1000 -> 100 minimum; same verdict, 32 -> 6 CPU-s at 446 frames)
+    "session 12": {
+        "overlap": 10,
+        "verify_min_trials": 100,
+        "chunk_ba_iterations": 10,
+        "chunk_workers": 1,
+    },
+    # fewer sequential pairs (loop pairs kept, from 7 frames apart)
+    "overlap 6": {"overlap": 6},
     # chunked mapping (sfm/chunks.py) above 200 usable frames, pinned as measured
     "chunked": {
         "chunk_above": 200,
@@ -69,15 +80,21 @@ OPTIONS: dict[str, dict] = {
 QUICK_OPTIONS = ("today", "default")
 
 
-def build_flight(work: Path, n: int) -> Path:
-    """frames.h5 of the route flown as ``n`` source frames (simulated and ingested once)."""
+def flight_name(n: int, seed: int) -> str:
+    """Folder (and row) name of the route flown as ``n`` source frames with ``seed``."""
+    return f"f{n}" if seed == SEED else f"f{n}s{seed}"
+
+
+def build_flight(work: Path, n: int, seed: int = SEED) -> Path:
+    """frames.h5 of the route flown as ``n`` source frames (simulated with ``seed`` and
+    ingested once)."""
     from dronecap.cli import main as cli
 
-    d = work / "flights" / f"f{n}"
+    d = work / "flights" / flight_name(n, seed)
     frames = d / "frames.h5"
     if not frames.exists():
         d.mkdir(parents=True, exist_ok=True)
-        if cli(["simulate", "--workdir", str(d), "--frames", str(n), "--seed", str(SEED)]) != 0:
+        if cli(["simulate", "--workdir", str(d), "--frames", str(n), "--seed", str(seed)]) != 0:
             sys.exit(f"simulate failed for {n} frames")
         if cli(["ingest", "--workdir", str(d), str(d / "flight.mp4")]) != 0:
             sys.exit(f"ingest failed for {n} frames")
@@ -145,6 +162,9 @@ def run_one(frames: Path, out: Path, overrides: dict) -> dict:
             )
         ),
         "map_cpu": sum(c.get(k, 0.0) for k in mapping),
+        "merge_cpu": ((rep.get("chunks") or {}).get("cpu_seconds") or {}).get("adjust", 0.0),
+        "bend_s": t.get("bend_check", 0.0),
+        "bend_cpu": c.get("bend check", 0.0),
         "global_mapper": rep.get("global_mapper"),
         "chunked": "chunked" in rep.get("models", {}),  # the merged chunks' model was mapped
         "wall_s": wall,
@@ -181,8 +201,9 @@ def table(rows: dict[tuple[str, int], dict], names: list[str], load: str, cmd: s
         "",
         "| option | source frames | kept | registered | ATE % | rot. median ° | bend p95 ° "
         "| features CPU / wall s | pairs+matching CPU / wall s (loop pairs CPU) "
-        "| mapping CPU / wall s | total CPU s | total wall s | load 1-min start/end |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| mapping CPU / wall s (merge CPU) | bend check CPU / wall s | total CPU s "
+        "| total wall s | load 1-min start/end |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name in names:
         for (o, n), r in sorted(rows.items(), key=lambda kv: kv[0][1]):
@@ -193,7 +214,9 @@ def table(rows: dict[tuple[str, int], dict], names: list[str], load: str, cmd: s
                 f"| {r['rot_deg']:.2f} | {r['bend_p95']:.2f} "
                 f"| {r['features_cpu']:.0f} / {r['features_s']:.0f} "
                 f"| {r['match_cpu']:.0f} / {r['match_s']:.0f} ({r['loop_cpu']:.0f}) "
-                f"| {r['map_cpu']:.0f} / {r['map_s']:.0f} | {r['cpu_s']:.0f} | {r['wall_s']:.0f} "
+                f"| {r['map_cpu']:.0f} / {r['map_s']:.0f} ({r.get('merge_cpu', 0):.0f}) "
+                f"| {r.get('bend_cpu', 0):.0f} / {r.get('bend_s', 0):.0f} "
+                f"| {r['cpu_s']:.0f} | {r['wall_s']:.0f} "
                 f"| {r['load'][0]} / {r['load'][-1]} |"
             )
     lines += [
@@ -246,6 +269,7 @@ def main() -> None:
     p.add_argument("--work", type=Path, default=Path("/tmp/scale27"))
     p.add_argument("--frames", type=int, nargs="*", help="source frames of each flight")
     p.add_argument("--options", nargs="*", help=f"option sets of {list(OPTIONS)}")
+    p.add_argument("--seed", type=int, default=SEED, help="simulator seed of the flights")
     p.add_argument("--repeat", type=int, default=1, help="runs per option and flight (median)")
     p.add_argument("--quick", action="store_true", help="the two short flights, two option sets")
     p.add_argument("--fresh", action="store_true", help="redo the cached rows")
@@ -256,11 +280,11 @@ def main() -> None:
     load = os.popen("uptime").read().strip()
     rows: dict[tuple[str, int], dict] = {}
     for n in frames:
-        flight = build_flight(args.work, n)
+        flight = build_flight(args.work, n, args.seed)
         for name in names:
             runs = []
             for k in range(args.repeat):
-                slug = f"{name.replace(' ', '_')}_f{n}_r{k}"
+                slug = f"{name.replace(' ', '_')}_{flight_name(n, args.seed)}_r{k}"
                 saved = args.work / "rows" / f"{slug}.json"
                 if saved.exists() and not args.fresh:
                     runs.append(json.loads(saved.read_text()))

@@ -8,7 +8,9 @@ benchmarks/results/sfm_scaling.md). Here the kept frames are cut, in flight orde
 holding our best initial pair is mapped first, from that pair; every other chunk, walking outwards
 from it, is mapped by resuming from its already mapped neighbour reduced to their shared frames
 (the *seed*), whose frames the mapper holds fixed: the chunk needs no initial pair of its own
-and lands in its neighbour's coordinate frame (seed frames move by 1e-15). The chunks' poses are
+and lands in its neighbour's coordinate frame (seed frames move by 1e-15). The chunks after the
+start chunk and those before it are two independent chains, mapped in two threads
+(``opts.chunk_workers``; the same models as one after another). The chunks' poses are
 then put into one model (:func:`merge_poses`: a frame keeps the pose of the first chunk that
 registered it), its points triangulated again from the database with those poses, and ONE
 bundle adjustment of the whole model refines poses and points (the re-triangulated points'
@@ -21,15 +23,20 @@ merge); 100-frame chunks sharing 20 left one chunk bent on its own (rotation 2.8
 final adjustment cannot straighten it (0.38 % / 0.56 deg at 10 and at 30 iterations); 150-frame
 chunks sharing 40 (the default) give 0.20 % / 0.36 deg on the same database. The final
 adjustment keeps COLMAP's solver choice (sparse Schur up to 1000 frames): iterative Schur needed
-60 iterations (59 CPU-s) for what 10 sparse ones (26 CPU-s) reach.
+60 iterations (59 CPU-s) for what 10 sparse ones (26 CPU-s) reach; 4 sparse ones reach nearly
+the same (0.189 vs 0.188 %, 9 CPU-s; ``opts.chunk_ba_iterations``).
 
 A swarm (several drones) is never chunked: chunks of two drones' flights share no frames.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import os
+import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -62,13 +69,13 @@ def chunk_names(names: list[str], size: int, overlap: int) -> list[list[str]]:
     return [names[bounds[k] : bounds[k + 1] + overlap] for k in range(count)]
 
 
-def mapping_order(chunks: list[list[str]], start: int) -> list[tuple[int, int | None]]:
-    """(chunk, neighbour it resumes from) in mapping order: ``start`` first (no neighbour),
-    then the chunks after it, then the ones before it, each from its neighbour towards
-    ``start``."""
+def mapping_chains(chunks: list[list[str]], start: int) -> list[list[tuple[int, int]]]:
+    """The chunks to map after ``start`` as independent chains of (chunk, neighbour it resumes
+    from): the chunks after ``start`` in flight order, then the ones before it walking back;
+    each chain grows from ``start`` and shares nothing with the other (empty chains left out)."""
     after = [(k, k - 1) for k in range(start + 1, len(chunks))]
     before = [(k, k + 1) for k in range(start - 1, -1, -1)]
-    return [(start, None), *after, *before]
+    return [c for c in (after, before) if c]
 
 
 def seed_model(model: Path, shared: set[str], out: Path) -> Path:
@@ -96,30 +103,66 @@ def map_chunks(
     on_register: Callable[[int], None],
 ) -> list[Path | None]:
     """Map every chunk but the ``start`` one (chunk index, its model folder), each resumed
-    from its neighbour's seed (:func:`mapping_order`). Returns each chunk's model folder, in
-    chunk order; None for a chunk that could not be mapped (nor the ones beyond it)."""
+    from its neighbour's seed, the :func:`mapping_chains` in up to ``opts.chunk_workers``
+    threads (pycolmap's mapper releases the GIL), the cores shared among them. Returns each
+    chunk's model folder, in chunk order; None for a chunk that could not be mapped (nor the
+    ones beyond it in its chain)."""
     models: list[Path | None] = [None] * len(chunks)
     models[start[0]] = start[1]
-    for k, prev in mapping_order(chunks, start[0])[1:]:
-        if prev is None or models[prev] is None:
-            continue
-        shared = set(chunks[k]) & set(chunks[prev])
-        seed = seed_model(models[prev], shared, work / CHUNKS / f"seed{k:03d}")
-        found = incremental_map(
-            database,
-            image_dir,
-            work / CHUNKS / f"c{k:03d}",
-            opts,
-            refine_camera,
-            on_register,
-            input_path=seed,
-            image_names=chunks[k],
-            seeded=True,
-        )
-        best = max(found, key=lambda j: found[j]["frames"], default=None)
-        if best is not None and found[best]["frames"] > len(shared):
-            models[k] = Path(best)
+    chains = mapping_chains(chunks, start[0])
+    workers = min(opts.chunk_workers, len(chains))
+    if workers > 1 and opts.num_threads < 1:  # all cores, shared among the chains
+        opts = dataclasses.replace(opts, num_threads=max(1, (os.cpu_count() or 1) // workers))
+    lock = threading.Lock()
+
+    def registered(k: int) -> None:
+        with lock:  # one event at a time from either chain
+            on_register(k)
+
+    def run(chain: list[tuple[int, int]]) -> None:
+        for k, prev in chain:
+            if models[prev] is None:
+                return
+            models[k] = _map_chunk(
+                database, image_dir, work, chunks[k], chunks[prev], k, models[prev], opts,
+                refine_camera, registered,
+            )  # fmt: skip
+
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        list(pool.map(run, chains))
     return models
+
+
+def _map_chunk(
+    database: Path,
+    image_dir: Path,
+    work: Path,
+    names: list[str],
+    neighbour: list[str],
+    k: int,
+    neighbour_model: Path,
+    opts: SfmOptions,
+    refine_camera: bool,
+    on_register: Callable[[int], None],
+) -> Path | None:
+    """Map chunk ``k`` (frames ``names``) resumed from the seed of its mapped neighbour (frames
+    ``neighbour``, model ``neighbour_model``); its model folder, or None when it registered no
+    frame beyond the seed."""
+    shared = set(names) & set(neighbour)
+    seed = seed_model(neighbour_model, shared, work / CHUNKS / f"seed{k:03d}")
+    found = incremental_map(
+        database,
+        image_dir,
+        work / CHUNKS / f"c{k:03d}",
+        opts,
+        refine_camera,
+        on_register,
+        input_path=seed,
+        image_names=names,
+        seeded=True,
+    )
+    best = max(found, key=lambda j: found[j]["frames"], default=None)
+    return Path(best) if best is not None and found[best]["frames"] > len(shared) else None
 
 
 def merge_poses(models: list[Any]) -> tuple[Any, int]:

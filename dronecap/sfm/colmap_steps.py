@@ -192,6 +192,7 @@ def match(
     matching.num_threads = opts.num_threads
     verify = pycolmap.TwoViewGeometryOptions()
     verify.ransac.max_error = opts.max_epipolar_error
+    verify.ransac.min_num_trials = opts.verify_min_trials
     verify.max_H_inlier_ratio = opts.max_h_inlier_ratio
     common = {"matching_options": matching, "verification_options": verify}
     if not own_pairs:

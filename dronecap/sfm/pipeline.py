@@ -92,6 +92,7 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         "matching": match_info,
         "init_pair": summary.get("init_pair"),
         "global_mapper": summary.get("global_mapper"),
+        "chunks": summary.get("chunks"),
         "bend_check": summary.get("bend_check"),
         "pose_jumps_remapped": summary.get("pose_jumps_remapped"),
         "keypoints_per_frame_median": float(np.median(list(keypoints.values())))

@@ -9,7 +9,7 @@ import pytest
 
 from dronecap.datasets.format import write_dataset
 from dronecap.sfm.blender_flight import blender_flight
-from dronecap.sfm.chunks import chunk_names, mapping_order, start_chunk
+from dronecap.sfm.chunks import chunk_names, mapping_chains, start_chunk
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.pipeline import run_sfm
 
@@ -40,13 +40,16 @@ def test_a_flight_within_one_chunk_is_one_chunk_and_bad_overlaps_are_refused():
             chunk_names(_names(300), 100, overlap)
 
 
-def test_chunks_are_mapped_outwards_from_the_start_each_from_its_mapped_neighbour():
-    order = mapping_order([[]] * 5, 2)
-    assert order == [(2, None), (3, 2), (4, 3), (1, 2), (0, 1)]
-    done = set()
-    for k, prev in order:
-        assert prev is None or prev in done
-        done.add(k)
+def test_chunks_are_mapped_outwards_from_the_start_in_two_independent_chains():
+    chains = mapping_chains([[]] * 5, 2)
+    assert chains == [[(3, 2), (4, 3)], [(1, 2), (0, 1)]]
+    for chain in chains:  # each chunk resumes from the start or from the one before it
+        done = {2}
+        for k, prev in chain:
+            assert prev in done
+            done.add(k)
+    assert mapping_chains([[]] * 3, 0) == [[(1, 0), (2, 1)]]  # nothing before the first
+    assert mapping_chains([[]], 0) == []
     pairs = [((1, 2), {"frames": ["00075.png", "00085.png"]})]
     chunks = chunk_names(_names(300), 100, 20)
     assert start_chunk(chunks, pairs) == 0  # in chunks 0 and 1: the first one
@@ -63,7 +66,8 @@ def test_only_long_single_flights_are_chunked():
     assert not opts.chunked(opts.chunk_above, n_drones=1)  # today's path up to the threshold
     assert not opts.chunked(4000, n_drones=4)  # a swarm's flights share no chunk frames
     assert not SfmOptions(chunk_above=0).chunked(4000, n_drones=1)  # 0: never
-    for bad in ({"chunk_overlap": 0}, {"chunk_overlap": 75}, {"chunk_ba_iterations": 0}):
+    bad_ones = ({"chunk_overlap": 0}, {"chunk_overlap": 75}, {"chunk_ba_iterations": 0})
+    for bad in (*bad_ones, {"chunk_workers": 0}, {"verify_min_trials": 0}):
         with pytest.raises(ValueError):
             SfmOptions(**bad).validate()
 
