@@ -15,9 +15,26 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from dronecap.datasets.format import Dataset, Intrinsics
 from dronecap.progress import progress_bar
 
+from .photometric import Photometric
+
 RenderFn = Callable[[np.ndarray, Intrinsics], np.ndarray]  # (c2w, K) -> float32 [H, W, C]
 # (frame index, render [H, W, C]) -> what the camera recorded of it [H, W, C]
 RecordFn = Callable[[int, np.ndarray], np.ndarray]
+
+
+def recorder(photometric: Photometric, ds: Dataset) -> RecordFn:
+    """The camera model of ``ds``'s views: (frame i, render) -> what its camera recorded
+    (:meth:`Photometric.recorded`), with ``ds``'s own training frames' capture times and
+    drones (split 0, the rows of the gain table) to interpolate each view's exposure."""
+    drones, times = ds.drones(), ds.timestamps
+    train = np.zeros(0, np.int64) if ds.split is None else np.flatnonzero(ds.split == 0)
+    frames = (times[train], drones[train]) if times is not None and train.size else None
+
+    def record(i: int, image: np.ndarray) -> np.ndarray:
+        when = None if times is None else (float(times[i]), int(drones[i]))
+        return photometric.recorded(image, ds.camera_of(i), when, frames)
+
+    return record
 
 
 def ground_truth(ds: Dataset, i: int, background: tuple[float, ...]) -> np.ndarray:

@@ -7,6 +7,7 @@ those in empty cells are dropped. Only points inside the AABB are ever produced.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import torch
@@ -127,3 +128,23 @@ def take_rays(samples: Samples, rays: Tensor) -> Samples:
         samples.t_ends[mask],
         samples.counts[rays],
     )
+
+
+def tiles(s: Samples, tile_samples: int) -> Iterator[tuple[int, int, Samples]]:
+    """Runs of whole rays holding about ``tile_samples`` samples each, in order.
+
+    Yields:
+        (first ray, one past the last ray, the run's samples with ray indices from 0).
+    """
+    n_rays = s.counts.shape[0]
+    start = torch.cumsum(s.counts, 0) - s.counts  # first sample of each ray
+    tile_of_ray = torch.div(start, max(tile_samples, 1), rounding_mode="floor")
+    bounds = torch.searchsorted(tile_of_ray, torch.unique(tile_of_ray)).tolist() + [n_rays]
+    sample_bounds = start.tolist() + [s.n]
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        sa, sb = sample_bounds[a], sample_bounds[b]
+        yield (
+            a,
+            b,
+            Samples(s.ray_indices[sa:sb] - a, s.t_starts[sa:sb], s.t_ends[sa:sb], s.counts[a:b]),
+        )

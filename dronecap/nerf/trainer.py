@@ -33,7 +33,7 @@ from .config import TrainConfig
 from .field import DTYPES, Field
 from .losses import huber_sum, psnr_from_mse
 from .march_kernel import march_function
-from .marching import Samples
+from .marching import Samples, tiles
 from .photometric import Photometric
 from .rays import frame_cameras, ray_aabb
 from .render import Volume, render_rays, render_view
@@ -211,8 +211,8 @@ class Trainer:
         out = render_packed(s.t_starts, s.t_ends, s.ray_indices, n_rays, color_sigma, behind)
         if self.cfg.distortion <= 0:
             return out.color, out.color.new_zeros(n_rays)
-        scale = float(torch.linalg.norm(self.aabb[1] - self.aabb[0]))
-        t0, t1 = s.t_starts / scale, s.t_ends / scale
+        diag = float(torch.linalg.norm(self.aabb[1] - self.aabb[0]))  # t in AABB diagonals
+        t0, t1 = s.t_starts / diag, s.t_ends / diag
         return out.color, distortion(out.weights, t0, t1, s.ray_indices, n_rays)
 
     def accumulate_gradients(self, rays: RayBatch, s: Samples) -> float:
@@ -225,16 +225,8 @@ class Trainer:
         the loss. Returns the batch loss.
         """
         n_rays, c = rays.target.shape
-        start = torch.cumsum(s.counts, 0) - s.counts
-        tile_of_ray = torch.div(start, max(self.cfg.tile_samples, 1), rounding_mode="floor")
-        bounds = torch.searchsorted(tile_of_ray, torch.unique(tile_of_ray)).tolist() + [n_rays]
-        sample_bounds = (torch.cumsum(s.counts, 0) - s.counts).tolist() + [s.n]
         total = 0.0
-        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
-            sa, sb = sample_bounds[a], sample_bounds[b]
-            tile = Samples(
-                s.ray_indices[sa:sb] - a, s.t_starts[sa:sb], s.t_ends[sa:sb], s.counts[a:b]
-            )
+        for a, b, tile in tiles(s, self.cfg.tile_samples):
             color, spread = self._render_rays(rays.origins[a:b], rays.dirs[a:b], tile, rays.bg[a:b])
             seen = self.photometric(color, rays.frame[a:b], rays.radius[a:b])
             loss = huber_sum(seen, rays.target[a:b]) / (n_rays * c)
@@ -443,20 +435,11 @@ class Trainer:
     ) -> dict:
         """PSNR/SSIM (scikit-image, stored resolution) of test views against ground truth
         composited on the dataset background, each render as the camera recorded it
-        (:meth:`Photometric.recorded`; the training frames' times are ``test``'s own):
-        {"psnr", "ssim", "psnr_radiance", "per_view": [...]} (:func:`evaluate_views`)."""
-        from .evaluate import evaluate_views
+        (:func:`.evaluate.recorder`): {"psnr", "ssim", "psnr_radiance", "per_view": [...]}."""
+        from .evaluate import evaluate_views, recorder
 
-        drones, times = test.drones(), test.timestamps
-        train = np.zeros(0, np.int64) if test.split is None else np.flatnonzero(test.split == 0)
-        frames = (times[train], drones[train]) if times is not None and train.size else None
-
-        def record(i: int, image: np.ndarray) -> np.ndarray:
-            when = None if times is None else (float(times[i]), int(drones[i]))
-            return self.photometric.recorded(image, test.camera_of(i), when, frames)
-
-        args = (self.render, test, self.scene.background, views, progress, keep_images, record)
-        return evaluate_views(*args)
+        bg, record = self.scene.background, recorder(self.photometric, test)
+        return evaluate_views(self.render, test, bg, views, progress, keep_images, record)
 
     def evaluate_all(self, test: Dataset, progress: bool = False) -> dict:
         """:meth:`evaluate` on all test views, keeping the renders under "images"."""
