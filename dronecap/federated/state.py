@@ -41,7 +41,8 @@ class FedSettings:
     transfer_dtype: str = "fp32"  # "fp32" or "fp16" for the floating arrays on the wire
     compress: bool = False  # lossless shuffle + deflate of every array on the wire (fedavg.py)
     quant_bits: int = 0  # 8 or 4: sparse quantised updates (sparse.py); 0: whole arrays
-    mlp_bits: int = 8  # with quant_bits: bits of the MLPs' change (8 or 4)
+    mlp_bits: int = 8  # with quant_bits: bits of the MLPs' change (8 or 4); 8 = runs from before
+    # the setting (session 13); new runs take `dronecap federate`'s default
     sparse_rows: float = 1.0  # with quant_bits: fraction of hash-table rows a drone sends
     down_rows: float = 0.0  # with quant_bits: fraction of table rows of the global model's
     # change broadcast each round (downlink.py); 0: the whole model is broadcast
