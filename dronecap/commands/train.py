@@ -123,7 +123,7 @@ def run(s: Settings) -> int:
     write_json(out / COST, cost_report(deployed(read_resolved(out).config)))
     done = (
         f"{out}: {m['steps']} steps in {m['train_seconds']:.0f} s "
-        f"({m['ms_per_step_median'] or 0:.1f} ms/step)"
+        f"(median step {m['ms_per_step_median'] or 0:.1f} ms)"
     )
     if m["until"]["stop_reason"]:
         done += f", stopped early: {m['until']['stop_reason']}"
