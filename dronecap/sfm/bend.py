@@ -14,12 +14,20 @@ from typing import Any
 
 import numpy as np
 
-# deg: a model whose 95th percentile of the rotation disagreement exceeds this is called bent.
-# Straight models measure: the 446-frame corridor (step rotation error vs ground truth max
-# 0.25 deg) median 0.63, p95 1.11, max 1.68 deg; a 30-view lego arc (max 0.34 deg) 0.51 / 1.62 /
-# 2.43 deg: two-view rotations of 160-px frames are that noisy. Bent models are 2.6-20 deg off
-# per step against ground truth. Not yet measured on a bent model: the threshold is provisional.
-BENT_P95_DEG = 2.5
+# Thresholds, deg. Two-view rotations of 160-px frames are noisy, and their noise is in the tail:
+# straight models measure (median / p95 / max) the 446-frame simulated corridor (step rotation
+# error vs ground truth max 0.25 deg) 0.63 / 1.11 / 1.68; a 30-view lego arc (max 0.34 deg)
+# 0.51 / 1.62 / 2.43; real Himax test_23 (56 frames, trains to 26.6 dB) 0.24 / 2.90 / 4.19 and
+# test_10 (26 frames) 0.69 / 6.69 / 7.59, where a few pairs of near-planar, low-texture frames
+# give an essential matrix several degrees off (the bas-relief ambiguity of a narrow view).
+# A bent model disagrees systematically (COLMAP's bent corridor models were 2.6-20 deg off per
+# step against ground truth) or breaks at one step (a fold).
+BENT_MEDIAN_DEG = 1.5  # a model whose median disagreement exceeds this is called bent
+BENT_MAX_DEG = 15.0  # ... or whose worst consecutive pair disagrees by more (a fold)
+# The global mapper's guard is stricter (sfm/global_map.py): its model replaces nothing when in
+# doubt (the incremental model is the fallback), so it must also keep its tail within what the
+# straight simulated models measure (p95 <= 2.5 deg).
+TAIL_P95_DEG = 2.5
 RANSAC_PX = 1.5  # px: essential-matrix threshold (the mapper's reprojection threshold)
 # RANSAC trials per pair. pycolmap's stand-alone default (at least 1000, up to 100000) cost
 # 32 CPU-s for the 445 pairs of the 446-frame corridor; consecutive frames share ~250 matches
@@ -33,8 +41,10 @@ def rotation_disagreement(database: Path, model: Path) -> dict[str, Any]:
     that has a verified two-view geometry.
 
     Returns the report record: pairs compared, median / 95th percentile / max of the angle
-    (deg) between the model's relative rotation and the two-view one, and ``bent`` (the 95th
-    percentile over :data:`BENT_P95_DEG`). ``pairs`` 0 when no consecutive pair is verified.
+    (deg) between the model's relative rotation and the two-view one, ``bent`` (median over
+    :data:`BENT_MEDIAN_DEG` or max over :data:`BENT_MAX_DEG`) and ``tail_ok`` (p95 within
+    :data:`TAIL_P95_DEG`). ``pairs`` 0 when no consecutive pair is verified. The two-view fits
+    use the model's cameras (the database holds the prior guess of an estimated camera).
     """
     import pycolmap
 
@@ -47,7 +57,13 @@ def rotation_disagreement(database: Path, model: Path) -> dict[str, Any]:
             ia, ib = ids[rec.images[a].name], ids[rec.images[b].name]
             if not db.exists_two_view_geometry(ia, ib):
                 continue
-            r_pair = _two_view_rotation(db, ia, ib)
+            r_pair = _two_view_rotation(
+                db,
+                ia,
+                ib,
+                rec.cameras[rec.images[a].camera_id],
+                rec.cameras[rec.images[b].camera_id],
+            )
             if r_pair is None:
                 continue
             r_a = rec.images[a].cam_from_world().rotation.matrix()
@@ -55,22 +71,29 @@ def rotation_disagreement(database: Path, model: Path) -> dict[str, Any]:
             r_model = r_b @ r_a.T  # cam_b from cam_a
             cos = (np.trace(r_model @ r_pair.T) - 1) / 2
             diffs.append(float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))))
-    if not diffs:
-        return {"pairs": 0, "bent": False}
-    d = np.array(diffs)
-    p95 = float(np.percentile(d, 95))
+    return verdict(np.array(diffs))
+
+
+def verdict(diffs: np.ndarray) -> dict[str, Any]:
+    """The bend check's record of the disagreements ``diffs`` [pairs] (deg) between the model's
+    and the two-view rotations of consecutive frames (see :func:`rotation_disagreement`)."""
+    if diffs.size == 0:
+        return {"pairs": 0, "bent": False, "tail_ok": False}
+    median, p95, worst = np.median(diffs), np.percentile(diffs, 95), diffs.max()
     return {
-        "pairs": len(d),
-        "median_deg": round(float(np.median(d)), 3),
-        "p95_deg": round(p95, 3),
-        "max_deg": round(float(d.max()), 3),
-        "bent": p95 > BENT_P95_DEG,
+        "pairs": int(diffs.size),
+        "median_deg": round(float(median), 3),
+        "p95_deg": round(float(p95), 3),
+        "max_deg": round(float(worst), 3),
+        "bent": bool(median > BENT_MEDIAN_DEG or worst > BENT_MAX_DEG),
+        "tail_ok": bool(p95 <= TAIL_P95_DEG),
     }
 
 
-def _two_view_rotation(db: Any, a: int, b: int) -> np.ndarray | None:
+def _two_view_rotation(db: Any, a: int, b: int, cam_a: Any, cam_b: Any) -> np.ndarray | None:
     """Rotation [3, 3] of image ``b``'s camera from image ``a``'s, from an essential matrix
-    fitted to the pair's verified matches (None with under 16 matches or no fit).
+    fitted to the pair's verified matches with the cameras ``cam_a``, ``cam_b``
+    (``pycolmap.Camera``; None with under 16 matches or no fit).
 
     Always the essential matrix: most pairs of these flights are labelled planar, and the
     stored homography's decomposition is 3-11 deg off on a lego orbit whose true step is 3.5.
@@ -81,8 +104,6 @@ def _two_view_rotation(db: Any, a: int, b: int) -> np.ndarray | None:
     m = np.asarray(g.inlier_matches)
     if m.shape[0] < 16:
         return None
-    cam_a = db.read_camera(db.read_image(a).camera_id)
-    cam_b = db.read_camera(db.read_image(b).camera_id)
     kp_a = np.asarray(db.read_keypoints(a))[m[:, 0], :2].astype(np.float64)
     kp_b = np.asarray(db.read_keypoints(b))[m[:, 1], :2].astype(np.float64)
     ransac = pycolmap.RANSACOptions()

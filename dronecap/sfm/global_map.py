@@ -65,8 +65,12 @@ def global_map(
 
 def accept(record: dict[str, Any], usable: int, min_fraction: float) -> bool:
     """Whether a global model (its ``record`` from :func:`global_map`) may be kept: at least
-    ``min_fraction`` of the ``usable`` frames and not bent."""
+    ``min_fraction`` of the ``usable`` frames, not bent, and its bend check's tail as narrow as
+    a straight model's (:data:`dronecap.sfm.bend.TAIL_P95_DEG`)."""
     bend = record.get("bend_check") or {}
     return (
-        record["frames"] >= min_fraction * usable and bend.get("pairs", 0) > 0 and not bend["bent"]
+        record["frames"] >= min_fraction * usable
+        and bend.get("pairs", 0) > 0
+        and not bend["bent"]
+        and bend["tail_ok"]
     )

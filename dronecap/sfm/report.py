@@ -239,5 +239,6 @@ def _bend_lines(bend: dict[str, Any]) -> list[str]:
     verdict = "BENT, do not trust these poses" if bend["bent"] else "straight"
     return [
         f"  bend check (model vs two-view rotations of {bend['pairs']} consecutive pairs): "
-        f"median {bend['median_deg']:.2f}, p95 {bend['p95_deg']:.2f} deg: {verdict}"
+        f"median {bend['median_deg']:.2f}, p95 {bend['p95_deg']:.2f}, max {bend['max_deg']:.2f} "
+        f"deg: {verdict}"
     ]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from dronecap.sfm.bend import verdict
 from dronecap.sfm.global_map import accept
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.reconstruct import bar_events
@@ -41,12 +42,33 @@ def test_new_options_are_checked():
             SfmOptions(**bad).validate()
 
 
-def test_the_global_guard_refuses_bent_or_incomplete_models():
-    straight = {"pairs": 99, "bent": False}
+def _disagreements(median: float, tail: list[float], pairs: int = 60) -> np.ndarray:
+    """``pairs`` disagreements (deg) around ``median``, the last ones replaced by ``tail``."""
+    d = np.random.default_rng(0).uniform(0.5, 1.5, pairs) * median
+    d[-len(tail) :] = tail
+    return d
+
+
+def test_the_bend_verdict_tells_a_noisy_tail_from_a_bent_model():
+    """Straight models (simulated and real) keep a low median whatever a few pairs say; a
+    systematic disagreement or one folded step is bent."""
+    simulated = verdict(_disagreements(0.6, [1.5]))
+    real = verdict(_disagreements(0.3, [3.0, 4.2, 7.5, 7.6]))  # Himax: a few noisy pairs
+    systematic = verdict(_disagreements(2.5, [3.0]))
+    fold = verdict(_disagreements(0.5, [30.0]))
+    assert not simulated["bent"] and simulated["tail_ok"]
+    assert not real["bent"] and not real["tail_ok"]
+    assert systematic["bent"] and fold["bent"]
+    assert verdict(np.array([])) == {"pairs": 0, "bent": False, "tail_ok": False}
+
+
+def test_the_global_guard_refuses_bent_noisy_or_incomplete_models():
+    straight = verdict(_disagreements(0.6, [1.5]))
     assert accept({"frames": 100, "bend_check": straight}, 100, 0.99)
     assert not accept({"frames": 90, "bend_check": straight}, 100, 0.99)
-    assert not accept({"frames": 100, "bend_check": {"pairs": 99, "bent": True}}, 100, 0.99)
-    assert not accept({"frames": 100, "bend_check": {"pairs": 0, "bent": False}}, 100, 0.99)
+    for bad in ([0.3, [3.0, 4.2, 7.5, 7.6]], [2.5, [3.0]]):  # a wide tail; bent
+        assert not accept({"frames": 100, "bend_check": verdict(_disagreements(*bad))}, 100, 0.99)
+    assert not accept({"frames": 100, "bend_check": verdict(np.array([]))}, 100, 0.99)
     assert not accept({"frames": 0, "kept": False}, 100, 0.99)
 
 
