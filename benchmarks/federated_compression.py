@@ -81,8 +81,6 @@ VARIANTS: dict[str, dict] = {  # in the order they run: the reference first
     "fp16 M": dict(quant_bits=0, **SERVER_STEP),
     "fp16 default": {**DEFAULT, "quant_bits": 0},  # the default's aggregation, whole fp16 arrays
     "default": DEFAULT,
-    "carry": {**DEFAULT, "feedback": "carry"},  # EXPERIMENT
-    "nofb": {**DEFAULT, "feedback": "none"},  # EXPERIMENT
     "q4 r3 vis M": dict(**SPARSE_UP, visibility=True, **SERVER_STEP),
     "q4 r3 vis M d5": dict(**SPARSE_UP, visibility=True, down_rows=0.05, **SERVER_STEP),
     "q4 r3 vis M d10": dict(**SPARSE_UP, visibility=True, down_rows=0.10, **SERVER_STEP),

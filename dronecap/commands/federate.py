@@ -57,7 +57,6 @@ class Settings(Base):
         help="with --quant-bits: fraction of hash-table rows a drone sends, the most changed "
         "(default 0.04)",
     )
-    feedback: str = setting("add", choices=("add", "carry", "none"), help="EXPERIMENT")
     down_rows: float = setting(
         0.0,
         minimum=0.0,
