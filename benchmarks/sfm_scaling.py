@@ -69,6 +69,11 @@ OPTIONS: dict[str, dict] = {
     },
     # fewer sequential pairs (loop pairs kept, from 7 frames apart)
     "overlap 6": {"overlap": 6},
+    # session 13's SIFT thresholds, pinned (session 14 raised the first pass's contrast
+    # threshold; not pinned: the start chunk nearest the middle, the cores of a lone chain)
+    "session 13": {"peak_threshold": 0.004, "finer_below": 400},
+    "peak 0.015": {"peak_threshold": 0.015},
+    "loop images 8": {"loop_num_images": 8},
     # chunked mapping (sfm/chunks.py) above 200 usable frames, pinned as measured
     "chunked": {
         "chunk_above": 200,

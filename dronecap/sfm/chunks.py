@@ -111,9 +111,8 @@ def map_chunks(
     models[start[0]] = start[1]
     chains = mapping_chains(chunks, start[0])
     workers = min(opts.chunk_workers, len(chains))
-    if workers > 1 and opts.num_threads < 1:  # all cores, shared among the chains
-        opts = dataclasses.replace(opts, num_threads=max(1, (os.cpu_count() or 1) // workers))
     lock = threading.Lock()
+    running = [workers]  # chains still mapping: each new chunk gets the cores / this many
 
     def registered(k: int) -> None:
         with lock:  # one event at a time from either chain
@@ -122,15 +121,27 @@ def map_chunks(
     def run(chain: list[tuple[int, int]]) -> None:
         for k, prev in chain:
             if models[prev] is None:
-                return
+                break
+            mine = opts
+            if workers > 1 and opts.num_threads < 1:  # all cores, shared among the chains
+                with lock:
+                    mine = dataclasses.replace(opts, num_threads=chunk_threads(running[0]))
             models[k] = _map_chunk(
-                database, image_dir, work, chunks[k], chunks[prev], k, models[prev], opts,
+                database, image_dir, work, chunks[k], chunks[prev], k, models[prev], mine,
                 refine_camera, registered,
             )  # fmt: skip
+        with lock:
+            running[0] -= 1
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         list(pool.map(run, chains))
     return models
+
+
+def chunk_threads(chains: int) -> int:
+    """COLMAP threads of a chunk mapped while ``chains`` chains (this one included) are
+    mapping: the cores shared among them, so the chain left alone gets them all."""
+    return max(1, (os.cpu_count() or 1) // max(1, chains))
 
 
 def _map_chunk(
@@ -240,15 +251,20 @@ def _drop_bad_points(rec: Any, opts: SfmOptions) -> None:
 
 
 def start_chunk(chunks: list[list[str]], pairs: list[tuple[Any, dict[str, Any]]]) -> int | None:
-    """The first chunk holding both frames of the best of our initial ``pairs``
-    (:func:`dronecap.sfm.initial_pair.initial_pairs`, best first) that fits in a chunk (a pair
-    may lie further apart than the chunks overlap), or None when none fits."""
-    for _, record in pairs:
-        a, b = record["frames"]
-        k = next((k for k, c in enumerate(chunks) if a in c and b in c), None)
-        if k is not None:
-            return k
-    return None
+    """The chunk nearest the middle of the flight that holds both frames of one of our initial
+    ``pairs`` (:func:`dronecap.sfm.initial_pair.initial_pairs`: every one passes the pair
+    checks; a pair may lie further apart than the chunks overlap and fit in none), or None when
+    none fits. From the middle, the two chains of :func:`mapping_chains` are about as long
+    (the 3901-frame flight of session 13 started from its best pair's chunk, 26 of 33: one
+    chain of 26 chunks, mostly alone on the cores)."""
+    fits = {
+        k
+        for _, record in pairs
+        for k, c in enumerate(chunks)
+        if set(record["frames"]) <= set(c)
+    }
+    middle = (len(chunks) - 1) / 2
+    return min(fits, key=lambda k: (abs(k - middle), k), default=None)
 
 
 def chunked_map(

@@ -29,12 +29,20 @@ class SfmOptions:
     max_features: int = 2048  # SIFT keypoints kept per image (160x160 frames yield ~100-400)
     first_octave: int = -1  # -1 upsamples 2x before the first octave: more features on tiny images
     # Frames with fewer keypoints than this (median) are extracted again one octave finer (4x
-    # upsampling at -2): real 160-px footage and white-background orbits yield 150-250 at -1,
-    # and at -2 register without retries (Himax test_2, test_15) and pose more accurately (lego
-    # orbit ATE 0.42 -> 0.26 %); textured flights (~580) keep -1, which is 2x faster there
-    # (benchmarks/results/sift_octave.md). 0: never.
-    finer_below: int = 400
-    peak_threshold: float = 0.004  # SIFT contrast threshold (COLMAP default 0.0067)
+    # upsampling at -2) at finer_peak_threshold: real 160-px footage and white-background
+    # orbits yield 150-250 at -1 even at 0.004, and at -2 register without retries (Himax
+    # test_2, test_15) and pose more accurately (lego orbit ATE 0.42 -> 0.26 %); textured
+    # flights keep -1, which is 2x faster there (benchmarks/results/sift_octave.md). 400 until
+    # session 14; 300 since the first pass keeps fewer keypoints (446-frame corridor: median
+    # 565 at 0.004, ~440 at 0.01). 0: never.
+    finer_below: int = 300
+    # SIFT contrast threshold of the first pass (COLMAP default 0.0067). 0.004 until session
+    # 14; at 0.01 the 446-frame corridor keeps 440 instead of 565 keypoints per frame and its
+    # sequential matching costs 28 instead of 50 CPU-s (docs/sfm.md "Session 14").
+    peak_threshold: float = 0.01
+    # contrast threshold of the finer re-extraction of sparse frames: today's 0.004, so sparse
+    # footage (Himax, lego) gets the keypoints it was measured with
+    finer_peak_threshold: float = 0.004
     clahe: bool = False  # contrast-normalise frames (capture.contrast) before SIFT
     # --- matching ---
     matcher: str = "auto"  # "sequential" (video order), "exhaustive", or "auto"
@@ -135,6 +143,8 @@ class SfmOptions:
             raise ValueError(f"ba_local_images must be at least 2, got {self.ba_local_images}")
         if self.matcher not in MATCHERS:
             raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
+        if min(self.peak_threshold, self.finer_peak_threshold) <= 0:
+            raise ValueError("peak_threshold and finer_peak_threshold must be > 0")
         if self.max_features < 16:
             raise ValueError(f"max_features must be at least 16, got {self.max_features}")
         if self.overlap < 1:
