@@ -258,10 +258,7 @@ def start_chunk(chunks: list[list[str]], pairs: list[tuple[Any, dict[str, Any]]]
     (the 3901-frame flight of session 13 started from its best pair's chunk, 26 of 33: one
     chain of 26 chunks, mostly alone on the cores)."""
     fits = {
-        k
-        for _, record in pairs
-        for k, c in enumerate(chunks)
-        if set(record["frames"]) <= set(c)
+        k for _, record in pairs for k, c in enumerate(chunks) if set(record["frames"]) <= set(c)
     }
     middle = (len(chunks) - 1) / 2
     return min(fits, key=lambda k: (abs(k - middle), k), default=None)
