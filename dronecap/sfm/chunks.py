@@ -5,12 +5,14 @@ COLMAP's incremental mapper re-adjusts the whole model every time it grew by a f
 of the mapping time (446 kept frames: 497 of 616 s, mapping CPU growing with exponent 2.3,
 benchmarks/results/sfm_scaling.md). Here the kept frames are cut, in flight order, into chunks of
 ``opts.chunk_frames`` frames overlapping by ``opts.chunk_overlap`` (:func:`chunk_names`). The chunk
-holding our best initial pair is mapped first, from that pair; every other chunk, walking outwards
-from it, is mapped by resuming from its already mapped neighbour reduced to their shared frames
-(the *seed*), whose frames the mapper holds fixed: the chunk needs no initial pair of its own
-and lands in its neighbour's coordinate frame (seed frames move by 1e-15). The chunks after the
+nearest the middle of the flight that holds one of our initial pairs is mapped first, from its
+best pair (:func:`start_chunk`); every other chunk, walking outwards from it, is mapped by
+resuming from its already mapped neighbour reduced to their shared frames (the *seed*), whose
+frames the mapper holds fixed: the chunk needs no initial pair of its own and lands in its
+neighbour's coordinate frame (seed frames move by 1e-15). The chunks after the
 start chunk and those before it are two independent chains, mapped in two threads
-(``opts.chunk_workers``; the same models as one after another). The chunks' poses are
+(``opts.chunk_workers``; the same models as one after another), the cores shared among the
+chains still mapping (:func:`chunk_threads`). The chunks' poses are
 then put into one model (:func:`merge_poses`: a frame keeps the pose of the first chunk that
 registered it), its points triangulated again from the database with those poses, and ONE
 bundle adjustment of the whole model refines poses and points (the re-triangulated points'
@@ -104,7 +106,8 @@ def map_chunks(
 ) -> list[Path | None]:
     """Map every chunk but the ``start`` one (chunk index, its model folder), each resumed
     from its neighbour's seed, the :func:`mapping_chains` in up to ``opts.chunk_workers``
-    threads (pycolmap's mapper releases the GIL), the cores shared among them. Returns each
+    threads (pycolmap's mapper releases the GIL), the cores shared among the chains still
+    mapping when a chunk starts. Returns each
     chunk's model folder, in chunk order; None for a chunk that could not be mapped (nor the
     ones beyond it in its chain)."""
     models: list[Path | None] = [None] * len(chunks)
@@ -312,9 +315,9 @@ def map_in_chunks(
     tiny: float,
 ) -> dict[str, dict[str, float]]:
     """Chunked mapping of one flight's ``usable`` frames (work folder ``root``), started from our
-    pairs in the best pair's chunk. Returns the merged model, or {} (then the caller maps
-    incrementally) when that start registers under ``tiny`` x its chunk's frames; fills
-    ``out``'s init_pair and chunks (the report's records)."""
+    pairs in the :func:`start_chunk` (nearest the middle). Returns the merged model, or {}
+    (then the caller maps incrementally) when that start registers under ``tiny`` x its
+    chunk's frames; fills ``out``'s init_pair and chunks (the report's records)."""
     db, images = root / "database.db", root / "images"
     chunks = chunk_names(usable, opts.chunk_frames, opts.chunk_overlap)
     pairs, info = initial_pairs(db, opts)
