@@ -115,7 +115,8 @@ class SfmOptions:
     chunk_ba_iterations: int = 4
     # chunks mapped at once: the chunks after the start chunk and those before it are two
     # independent chains (each chunk resumes from its neighbour), mapped in two threads with
-    # half the cores each; 1: one after another
+    # half the cores each, all of them for a chunk started once the other chain has ended
+    # (since session 14); 1: one after another
     chunk_workers: int = 2
     time_cap: float = 0.0  # s: stop mapping after this long and keep the model so far (0: none)
     extend: bool = True  # resume mapping from the largest model to absorb the others
