@@ -285,7 +285,9 @@ def chunked_map(
     import pycolmap
 
     t = time.process_time()
-    models = map_chunks(database, image_dir, root, chunks, start, opts, refine_camera, on_register)
+    models = map_chunks(
+        database, image_dir, root, chunks, start, opts.for_chunks(), refine_camera, on_register
+    )
     loaded = {k: pycolmap.Reconstruction(m) for k, m in enumerate(models) if m is not None}
     merged, n_merged = merge_poses(list(loaded.values()))
     t_merge = time.process_time()
@@ -326,8 +328,8 @@ def map_in_chunks(
     mine = [p for p in pairs if k is not None and set(p[1]["frames"]) <= set(chunks[k])]
     enough = tiny * len(chunks[k or 0])
     found, tried = map_from_pairs(
-        db, images, root / CHUNKS / "start", opts, refine_camera, on_register, mine, enough,
-        chunks[k or 0],
+        db, images, root / CHUNKS / "start", opts.for_chunks(), refine_camera, on_register, mine,
+        enough, chunks[k or 0],
     )  # fmt: skip
     out["init_pair"] = {**info, "tried": tried, "chosen": tried[-1] if tried else None}
     best = max(found, key=lambda j: found[j]["frames"], default=None)
