@@ -95,6 +95,20 @@ def test_only_long_single_flights_are_chunked():
             SfmOptions(**bad).validate()
 
 
+def test_the_chunks_mappers_use_the_chunk_bundle_adjustment_and_nothing_else_changes():
+    opts = SfmOptions(chunk_ba_global_ratio=2.5, chunk_ba_global_max_iterations=7)
+    chunked = opts.for_chunks()
+    assert (chunked.ba_global_ratio, chunked.ba_global_max_iterations) == (2.5, 7)
+    assert chunked.ba_prune_redundant == opts.chunk_ba_prune_redundant
+    assert opts.ba_global_ratio == SfmOptions().ba_global_ratio  # the caller's options stay
+    same = {k: v for k, v in chunked.to_dict().items() if not k.startswith("ba_global")}
+    assert same == {k: v for k, v in opts.to_dict().items() if not k.startswith("ba_global")} | {
+        "ba_prune_redundant": opts.chunk_ba_prune_redundant
+    }
+    with pytest.raises(ValueError):
+        SfmOptions(chunk_ba_global_ratio=1.0).validate()
+
+
 def test_a_chunked_lego_flight_is_one_straight_accurate_model(lego_dir, tmp_path):
     """36 lego views in 3 chunks of ~16 (6 shared): one merged model, every frame, accurate."""
     ds, gt = blender_flight(lego_dir, count=36)
