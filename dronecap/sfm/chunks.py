@@ -9,15 +9,15 @@ nearest the middle of the flight that holds one of our initial pairs is mapped f
 best pair (:func:`start_chunk`); every other chunk, walking outwards from it, is mapped by
 resuming from its already mapped neighbour reduced to their shared frames (the *seed*), whose
 frames the mapper holds fixed: the chunk needs no initial pair of its own and lands in its
-neighbour's coordinate frame (seed frames move by 1e-15). The chunks after the
-start chunk and those before it are two independent chains, mapped in two threads
+neighbour's coordinate frame (seed frames move by 1e-15). The chunks' mappers adjust globally
+less often than an unchunked flight's (``SfmOptions.for_chunks``). The chunks after the start
+chunk and those before it are two independent chains, mapped in two threads
 (``opts.chunk_workers``; the same models as one after another), the cores shared among the
-chains still mapping (:func:`chunk_threads`). The chunks' poses are
-then put into one model (:func:`merge_poses`: a frame keeps the pose of the first chunk that
-registered it), its points triangulated again from the database with those poses, and ONE
-bundle adjustment of the whole model refines poses and points (the re-triangulated points'
-tracks cross the chunk boundaries: keeping each chunk's own points instead, the adjustment moved
-nothing, ATE 0.57 -> 0.57 %).
+chains still mapping (:func:`chunk_threads`). The chunks' poses are then put into one model
+(:func:`merge_poses`: a frame keeps the pose of the first chunk that registered it), its points
+triangulated again from the database with those poses, and ONE bundle adjustment of the whole
+model refines poses and points (the re-triangulated points' tracks cross the chunk boundaries:
+keeping each chunk's own points instead, the adjustment moved nothing, ATE 0.57 -> 0.57 %).
 
 Measured on the 446-frame corridor (benchmarks/results/sfm_scaling.md, docs/sfm.md "Chunked
 mapping"): seeds freed, the chunks drift apart (ATE 0.64 %, rotation median 2.9 deg after the
@@ -107,9 +107,8 @@ def map_chunks(
     """Map every chunk but the ``start`` one (chunk index, its model folder), each resumed
     from its neighbour's seed, the :func:`mapping_chains` in up to ``opts.chunk_workers``
     threads (pycolmap's mapper releases the GIL), the cores shared among the chains still
-    mapping when a chunk starts. Returns each
-    chunk's model folder, in chunk order; None for a chunk that could not be mapped (nor the
-    ones beyond it in its chain)."""
+    mapping when a chunk starts. Returns each chunk's model folder, in chunk order; None for a
+    chunk that could not be mapped (nor the ones beyond it in its chain)."""
     models: list[Path | None] = [None] * len(chunks)
     models[start[0]] = start[1]
     chains = mapping_chains(chunks, start[0])
