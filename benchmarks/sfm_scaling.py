@@ -69,6 +69,18 @@ OPTIONS: dict[str, dict] = {
     },
     # fewer sequential pairs (loop pairs kept, from 7 frames apart)
     "overlap 6": {"overlap": 6},
+    # session 13's SIFT thresholds, pinned (session 14 raised the first pass's contrast
+    # threshold; not pinned: the start chunk nearest the middle, the cores of a lone chain)
+    "session 13": {"peak_threshold": 0.004, "finer_below": 400},
+    "peak 0.015": {"peak_threshold": 0.015},
+    # the chunks' mappers with the global bundle adjustment of unchunked flights (until
+    # session 14)
+    "chunk BA as 13": {
+        "chunk_ba_global_ratio": 1.5,
+        "chunk_ba_global_max_iterations": 20,
+        "chunk_ba_prune_redundant": False,
+    },
+    "loop images 8": {"loop_num_images": 8},
     # chunked mapping (sfm/chunks.py) above 200 usable frames, pinned as measured
     "chunked": {
         "chunk_above": 200,

@@ -5,17 +5,19 @@ COLMAP's incremental mapper re-adjusts the whole model every time it grew by a f
 of the mapping time (446 kept frames: 497 of 616 s, mapping CPU growing with exponent 2.3,
 benchmarks/results/sfm_scaling.md). Here the kept frames are cut, in flight order, into chunks of
 ``opts.chunk_frames`` frames overlapping by ``opts.chunk_overlap`` (:func:`chunk_names`). The chunk
-holding our best initial pair is mapped first, from that pair; every other chunk, walking outwards
-from it, is mapped by resuming from its already mapped neighbour reduced to their shared frames
-(the *seed*), whose frames the mapper holds fixed: the chunk needs no initial pair of its own
-and lands in its neighbour's coordinate frame (seed frames move by 1e-15). The chunks after the
-start chunk and those before it are two independent chains, mapped in two threads
-(``opts.chunk_workers``; the same models as one after another). The chunks' poses are
-then put into one model (:func:`merge_poses`: a frame keeps the pose of the first chunk that
-registered it), its points triangulated again from the database with those poses, and ONE
-bundle adjustment of the whole model refines poses and points (the re-triangulated points'
-tracks cross the chunk boundaries: keeping each chunk's own points instead, the adjustment moved
-nothing, ATE 0.57 -> 0.57 %).
+nearest the middle of the flight that holds one of our initial pairs is mapped first, from its
+best pair (:func:`start_chunk`); every other chunk, walking outwards from it, is mapped by
+resuming from its already mapped neighbour reduced to their shared frames (the *seed*), whose
+frames the mapper holds fixed: the chunk needs no initial pair of its own and lands in its
+neighbour's coordinate frame (seed frames move by 1e-15). The chunks' mappers adjust globally
+less often than an unchunked flight's (``SfmOptions.for_chunks``). The chunks after the start
+chunk and those before it are two independent chains, mapped in two threads
+(``opts.chunk_workers``; the same models as one after another), the cores shared among the
+chains still mapping (:func:`chunk_threads`). The chunks' poses are then put into one model
+(:func:`merge_poses`: a frame keeps the pose of the first chunk that registered it), its points
+triangulated again from the database with those poses, and ONE bundle adjustment of the whole
+model refines poses and points (the re-triangulated points' tracks cross the chunk boundaries:
+keeping each chunk's own points instead, the adjustment moved nothing, ATE 0.57 -> 0.57 %).
 
 Measured on the 446-frame corridor (benchmarks/results/sfm_scaling.md, docs/sfm.md "Chunked
 mapping"): seeds freed, the chunks drift apart (ATE 0.64 %, rotation median 2.9 deg after the
@@ -104,16 +106,15 @@ def map_chunks(
 ) -> list[Path | None]:
     """Map every chunk but the ``start`` one (chunk index, its model folder), each resumed
     from its neighbour's seed, the :func:`mapping_chains` in up to ``opts.chunk_workers``
-    threads (pycolmap's mapper releases the GIL), the cores shared among them. Returns each
-    chunk's model folder, in chunk order; None for a chunk that could not be mapped (nor the
-    ones beyond it in its chain)."""
+    threads (pycolmap's mapper releases the GIL), the cores shared among the chains still
+    mapping when a chunk starts. Returns each chunk's model folder, in chunk order; None for a
+    chunk that could not be mapped (nor the ones beyond it in its chain)."""
     models: list[Path | None] = [None] * len(chunks)
     models[start[0]] = start[1]
     chains = mapping_chains(chunks, start[0])
     workers = min(opts.chunk_workers, len(chains))
-    if workers > 1 and opts.num_threads < 1:  # all cores, shared among the chains
-        opts = dataclasses.replace(opts, num_threads=max(1, (os.cpu_count() or 1) // workers))
     lock = threading.Lock()
+    running = [workers]  # chains still mapping: each new chunk gets the cores / this many
 
     def registered(k: int) -> None:
         with lock:  # one event at a time from either chain
@@ -122,15 +123,27 @@ def map_chunks(
     def run(chain: list[tuple[int, int]]) -> None:
         for k, prev in chain:
             if models[prev] is None:
-                return
+                break
+            mine = opts
+            if workers > 1 and opts.num_threads < 1:  # all cores, shared among the chains
+                with lock:
+                    mine = dataclasses.replace(opts, num_threads=chunk_threads(running[0]))
             models[k] = _map_chunk(
-                database, image_dir, work, chunks[k], chunks[prev], k, models[prev], opts,
+                database, image_dir, work, chunks[k], chunks[prev], k, models[prev], mine,
                 refine_camera, registered,
             )  # fmt: skip
+        with lock:
+            running[0] -= 1
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         list(pool.map(run, chains))
     return models
+
+
+def chunk_threads(chains: int) -> int:
+    """COLMAP threads of a chunk mapped while ``chains`` chains (this one included) are
+    mapping: the cores shared among them, so the chain left alone gets them all."""
+    return max(1, (os.cpu_count() or 1) // max(1, chains))
 
 
 def _map_chunk(
@@ -240,15 +253,17 @@ def _drop_bad_points(rec: Any, opts: SfmOptions) -> None:
 
 
 def start_chunk(chunks: list[list[str]], pairs: list[tuple[Any, dict[str, Any]]]) -> int | None:
-    """The first chunk holding both frames of the best of our initial ``pairs``
-    (:func:`dronecap.sfm.initial_pair.initial_pairs`, best first) that fits in a chunk (a pair
-    may lie further apart than the chunks overlap), or None when none fits."""
-    for _, record in pairs:
-        a, b = record["frames"]
-        k = next((k for k, c in enumerate(chunks) if a in c and b in c), None)
-        if k is not None:
-            return k
-    return None
+    """The chunk nearest the middle of the flight that holds both frames of one of our initial
+    ``pairs`` (:func:`dronecap.sfm.initial_pair.initial_pairs`: every one passes the pair
+    checks; a pair may lie further apart than the chunks overlap and fit in none), or None when
+    none fits. From the middle, the two chains of :func:`mapping_chains` are about as long
+    (the 3901-frame flight of session 13 started from its best pair's chunk, 26 of 33: one
+    chain of 26 chunks, mostly alone on the cores)."""
+    fits = {
+        k for _, record in pairs for k, c in enumerate(chunks) if set(record["frames"]) <= set(c)
+    }
+    middle = (len(chunks) - 1) / 2
+    return min(fits, key=lambda k: (abs(k - middle), k), default=None)
 
 
 def chunked_map(
@@ -269,7 +284,9 @@ def chunked_map(
     import pycolmap
 
     t = time.process_time()
-    models = map_chunks(database, image_dir, root, chunks, start, opts, refine_camera, on_register)
+    models = map_chunks(
+        database, image_dir, root, chunks, start, opts.for_chunks(), refine_camera, on_register
+    )
     loaded = {k: pycolmap.Reconstruction(m) for k, m in enumerate(models) if m is not None}
     merged, n_merged = merge_poses(list(loaded.values()))
     t_merge = time.process_time()
@@ -299,9 +316,9 @@ def map_in_chunks(
     tiny: float,
 ) -> dict[str, dict[str, float]]:
     """Chunked mapping of one flight's ``usable`` frames (work folder ``root``), started from our
-    pairs in the best pair's chunk. Returns the merged model, or {} (then the caller maps
-    incrementally) when that start registers under ``tiny`` x its chunk's frames; fills
-    ``out``'s init_pair and chunks (the report's records)."""
+    pairs in the :func:`start_chunk` (nearest the middle). Returns the merged model, or {}
+    (then the caller maps incrementally) when that start registers under ``tiny`` x its
+    chunk's frames; fills ``out``'s init_pair and chunks (the report's records)."""
     db, images = root / "database.db", root / "images"
     chunks = chunk_names(usable, opts.chunk_frames, opts.chunk_overlap)
     pairs, info = initial_pairs(db, opts)
@@ -310,8 +327,8 @@ def map_in_chunks(
     mine = [p for p in pairs if k is not None and set(p[1]["frames"]) <= set(chunks[k])]
     enough = tiny * len(chunks[k or 0])
     found, tried = map_from_pairs(
-        db, images, root / CHUNKS / "start", opts, refine_camera, on_register, mine, enough,
-        chunks[k or 0],
+        db, images, root / CHUNKS / "start", opts.for_chunks(), refine_camera, on_register, mine,
+        enough, chunks[k or 0],
     )  # fmt: skip
     out["init_pair"] = {**info, "tried": tried, "chosen": tried[-1] if tried else None}
     best = max(found, key=lambda j: found[j]["frames"], default=None)

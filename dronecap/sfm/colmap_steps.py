@@ -109,7 +109,7 @@ def extract_finer_when_sparse(
 ) -> tuple[dict[str, int], int]:
     """:func:`extract` at ``opts.first_octave``; when the frames' median keypoint count is
     under ``opts.finer_below``, the database is built again one octave finer (never finer
-    than :data:`FINEST_OCTAVE`).
+    than :data:`FINEST_OCTAVE`) at the contrast threshold ``opts.finer_peak_threshold``.
 
     Returns:
         (image name -> number of keypoints, the first octave the database holds).
@@ -120,7 +120,9 @@ def extract_finer_when_sparse(
     if octave > FINEST_OCTAVE and median < opts.finer_below:
         database.unlink()
         octave -= 1
-        finer = dataclasses.replace(opts, first_octave=octave)
+        finer = dataclasses.replace(
+            opts, first_octave=octave, peak_threshold=opts.finer_peak_threshold
+        )
         keypoints = extract(database, image_dir, names, finer, cameras)
     return keypoints, octave
 

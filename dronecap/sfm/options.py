@@ -5,7 +5,7 @@ The defaults come from ``benchmarks/sfm_accuracy.py`` (see docs/sfm.md for the n
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 MATCHERS = ("auto", "sequential", "exhaustive")
@@ -29,12 +29,20 @@ class SfmOptions:
     max_features: int = 2048  # SIFT keypoints kept per image (160x160 frames yield ~100-400)
     first_octave: int = -1  # -1 upsamples 2x before the first octave: more features on tiny images
     # Frames with fewer keypoints than this (median) are extracted again one octave finer (4x
-    # upsampling at -2): real 160-px footage and white-background orbits yield 150-250 at -1,
-    # and at -2 register without retries (Himax test_2, test_15) and pose more accurately (lego
-    # orbit ATE 0.42 -> 0.26 %); textured flights (~580) keep -1, which is 2x faster there
-    # (benchmarks/results/sift_octave.md). 0: never.
-    finer_below: int = 400
-    peak_threshold: float = 0.004  # SIFT contrast threshold (COLMAP default 0.0067)
+    # upsampling at -2) at finer_peak_threshold: real 160-px footage and white-background
+    # orbits yield 150-250 at -1 even at 0.004, and at -2 register without retries (Himax
+    # test_2, test_15) and pose more accurately (lego orbit ATE 0.42 -> 0.26 %); textured
+    # flights keep -1, which is 2x faster there (benchmarks/results/sift_octave.md). 400 until
+    # session 14; 300 since the first pass keeps fewer keypoints (446-frame corridor: median
+    # 565 at 0.004, ~440 at 0.01). 0: never.
+    finer_below: int = 300
+    # SIFT contrast threshold of the first pass (COLMAP default 0.0067). 0.004 until session
+    # 14; at 0.01 the 446-frame corridor keeps 440 instead of 565 keypoints per frame and its
+    # sequential matching costs 28 instead of 50 CPU-s (docs/sfm.md "Session 14").
+    peak_threshold: float = 0.01
+    # contrast threshold of the finer re-extraction of sparse frames: today's 0.004, so sparse
+    # footage (Himax, lego) gets the keypoints it was measured with
+    finer_peak_threshold: float = 0.004
     clahe: bool = False  # contrast-normalise frames (capture.contrast) before SIFT
     # --- matching ---
     matcher: str = "auto"  # "sequential" (video order), "exhaustive", or "auto"
@@ -105,9 +113,18 @@ class SfmOptions:
     # on the 446-frame corridor 1 / 4 / 10 iterations give ATE 0.197 / 0.189 / 0.188 %,
     # rotation 0.43 / 0.43 / 0.42 deg at 5 / 9 / 29 CPU-s (docs/sfm.md "Session 13").
     chunk_ba_iterations: int = 4
+    # Bundle adjustment inside the chunks' mappers (the merged model's final adjustment
+    # couples them): global BA when the chunk grew 3x (not 1.5x), at most 10 iterations,
+    # redundant points skipped. Session 14, a 141-frame chunk of the 446-frame corridor mapped
+    # from its pair: 23.2 -> 13.6 CPU-s, chunk ATE 0.228 -> 0.215 %; another chunk 19.7 -> 12.7,
+    # 0.217 -> 0.194 % (docs/sfm.md "Session 14"). Unchunked flights keep ba_global_*.
+    chunk_ba_global_ratio: float = 3.0
+    chunk_ba_global_max_iterations: int = 10
+    chunk_ba_prune_redundant: bool = True
     # chunks mapped at once: the chunks after the start chunk and those before it are two
     # independent chains (each chunk resumes from its neighbour), mapped in two threads with
-    # half the cores each; 1: one after another
+    # half the cores each, all of them for a chunk started once the other chain has ended
+    # (since session 14); 1: one after another
     chunk_workers: int = 2
     time_cap: float = 0.0  # s: stop mapping after this long and keep the model so far (0: none)
     extend: bool = True  # resume mapping from the largest model to absorb the others
@@ -135,6 +152,8 @@ class SfmOptions:
             raise ValueError(f"ba_local_images must be at least 2, got {self.ba_local_images}")
         if self.matcher not in MATCHERS:
             raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
+        if min(self.peak_threshold, self.finer_peak_threshold) <= 0:
+            raise ValueError("peak_threshold and finer_peak_threshold must be > 0")
         if self.max_features < 16:
             raise ValueError(f"max_features must be at least 16, got {self.max_features}")
         if self.overlap < 1:
@@ -145,8 +164,10 @@ class SfmOptions:
             raise ValueError("loop_period, loop_num_images and cross_num_images must be >= 1")
         if self.visual_words < 16:
             raise ValueError(f"visual_words must be at least 16, got {self.visual_words}")
-        if self.ba_global_ratio <= 1.0 or self.ba_refinements < 1 or self.time_cap < 0:
-            raise ValueError("ba_global_ratio must be > 1, ba_refinements >= 1, time_cap >= 0")
+        if min(self.ba_global_ratio, self.chunk_ba_global_ratio) <= 1.0:
+            raise ValueError("ba_global_ratio and chunk_ba_global_ratio must be > 1")
+        if self.ba_refinements < 1 or self.time_cap < 0:
+            raise ValueError("ba_refinements must be >= 1 and time_cap >= 0")
         if self.chunk_above < 0 or not 1 <= self.chunk_overlap < self.chunk_frames / 2:
             raise ValueError("chunk_above must be >= 0 and chunk_overlap in [1, chunk_frames / 2)")
         if min(self.chunk_ba_iterations, self.chunk_workers, self.verify_min_trials) < 1:
@@ -158,6 +179,16 @@ class SfmOptions:
         """Whether ``n_drones`` flights of ``n_frames`` usable frames in all are mapped in
         chunks: one flight only (a swarm's flights share no chunk frames), long enough."""
         return n_drones == 1 and 0 < self.chunk_above < n_frames
+
+    def for_chunks(self) -> SfmOptions:
+        """These options with the chunks' own bundle adjustment (``chunk_ba_*``) as the
+        mapper's global bundle adjustment."""
+        return replace(
+            self,
+            ba_global_ratio=self.chunk_ba_global_ratio,
+            ba_global_max_iterations=self.chunk_ba_global_max_iterations,
+            ba_prune_redundant=self.chunk_ba_prune_redundant,
+        )
 
     def resolved_matcher(self, n_frames: int) -> str:
         """ "sequential" or "exhaustive" for a flight of ``n_frames`` frames."""

@@ -79,7 +79,12 @@ def remedies(
         (
             "more features",
             lambda o, p: (
-                _set(o, max_features=2 * o.max_features, peak_threshold=o.peak_threshold / 2),
+                _set(
+                    o,
+                    max_features=2 * o.max_features,
+                    peak_threshold=o.peak_threshold / 2,
+                    finer_peak_threshold=o.finer_peak_threshold / 2,
+                ),
                 p,
             ),
         )

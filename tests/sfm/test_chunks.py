@@ -9,7 +9,7 @@ import pytest
 
 from dronecap.datasets.format import write_dataset
 from dronecap.sfm.blender_flight import blender_flight
-from dronecap.sfm.chunks import chunk_names, mapping_chains, start_chunk
+from dronecap.sfm.chunks import chunk_names, chunk_threads, mapping_chains, start_chunk
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.pipeline import run_sfm
 
@@ -50,14 +50,37 @@ def test_chunks_are_mapped_outwards_from_the_start_in_two_independent_chains():
             done.add(k)
     assert mapping_chains([[]] * 3, 0) == [[(1, 0), (2, 1)]]  # nothing before the first
     assert mapping_chains([[]], 0) == []
+
+
+def test_the_start_chunk_is_the_one_nearest_the_middle_that_holds_a_pair():
+    chunks = chunk_names(_names(300), 100, 20)  # 4 chunks: 0-89, 70-159, 140-229, 210-299
+    assert len(chunks) == 4
     pairs = [((1, 2), {"frames": ["00075.png", "00085.png"]})]
-    chunks = chunk_names(_names(300), 100, 20)
-    assert start_chunk(chunks, pairs) == 0  # in chunks 0 and 1: the first one
-    pairs = [((1, 2), {"frames": ["00150.png", "00158.png"]})]
-    assert start_chunk(chunks, pairs) == 1
-    too_wide = ((3, 4), {"frames": ["00010.png", "00150.png"]})  # in no chunk: the next pair
-    assert start_chunk(chunks, [too_wide, *pairs]) == 1
+    assert start_chunk(chunks, pairs) == 1  # in chunks 0 and 1: the one nearer the middle
+    end = ((5, 6), {"frames": ["00010.png", "00015.png"]})  # the best pair, at one end
+    assert start_chunk(chunks, [end]) == 0  # the only chunk holding a pair
+    assert start_chunk(chunks, [end, *pairs]) == 1  # a later pair nearer the middle wins
+    middle = ((7, 8), {"frames": ["00145.png", "00152.png"]})  # chunks 1 and 2, equally near
+    assert start_chunk(chunks, [end, middle]) == 1  # a tie: the earlier chunk
+    too_wide = ((3, 4), {"frames": ["00010.png", "00150.png"]})  # in no chunk
+    assert start_chunk(chunks, [too_wide, end]) == 0
     assert start_chunk(chunks, [too_wide]) is None and start_chunk(chunks, []) is None
+    long_flight = chunk_names(_names(4000), 150, 40)
+    tail = ((9, 10), {"frames": ["03900.png", "03905.png"]})
+    first = ((11, 12), {"frames": ["00100.png", "00106.png"]})
+    k = start_chunk(long_flight, [tail, first, middle])
+    chains = mapping_chains(long_flight, k)
+    assert [len(c) for c in chains] == [len(long_flight) - 2, 1]  # only pairs near the ends
+    centre = [f"{i:05d}.png" for i in (2000, 2006)]
+    k = start_chunk(long_flight, [tail, first, ((13, 14), {"frames": centre})])
+    assert abs(len(mapping_chains(long_flight, k)[0]) - len(mapping_chains(long_flight, k)[1])) <= 1
+
+
+def test_a_chain_left_alone_gets_all_the_cores(monkeypatch):
+    monkeypatch.setattr("os.cpu_count", lambda: 8)
+    assert [chunk_threads(n) for n in (2, 1, 0)] == [4, 8, 8]
+    monkeypatch.setattr("os.cpu_count", lambda: 1)
+    assert chunk_threads(2) == 1
 
 
 def test_only_long_single_flights_are_chunked():
@@ -70,6 +93,20 @@ def test_only_long_single_flights_are_chunked():
     for bad in (*bad_ones, {"chunk_workers": 0}, {"verify_min_trials": 0}):
         with pytest.raises(ValueError):
             SfmOptions(**bad).validate()
+
+
+def test_the_chunks_mappers_use_the_chunk_bundle_adjustment_and_nothing_else_changes():
+    opts = SfmOptions(chunk_ba_global_ratio=2.5, chunk_ba_global_max_iterations=7)
+    chunked = opts.for_chunks()
+    assert (chunked.ba_global_ratio, chunked.ba_global_max_iterations) == (2.5, 7)
+    assert chunked.ba_prune_redundant == opts.chunk_ba_prune_redundant
+    assert opts.ba_global_ratio == SfmOptions().ba_global_ratio  # the caller's options stay
+    same = {k: v for k, v in chunked.to_dict().items() if not k.startswith("ba_global")}
+    assert same == {k: v for k, v in opts.to_dict().items() if not k.startswith("ba_global")} | {
+        "ba_prune_redundant": opts.chunk_ba_prune_redundant
+    }
+    with pytest.raises(ValueError):
+        SfmOptions(chunk_ba_global_ratio=1.0).validate()
 
 
 def test_a_chunked_lego_flight_is_one_straight_accurate_model(lego_dir, tmp_path):

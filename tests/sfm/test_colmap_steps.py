@@ -155,6 +155,12 @@ def test_sparse_frames_are_extracted_one_octave_finer(tmp_path, textured):
     with pycolmap.Database.open(tmp_path / "db.db") as db:
         stored = {im.name: db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()}
     assert stored == keypoints and len(stored) == 3  # one set of images, the finer one
+    if not textured:  # the finer pass runs at its own contrast threshold
+        strict = SfmOptions(num_threads=1, finer_peak_threshold=0.1)
+        fewer, octave = extract_finer_when_sparse(
+            tmp_path / "db1.db", tmp_path / "images", names, strict, [None]
+        )
+        assert octave == -2 and sum(fewer.values()) < sum(keypoints.values())
     if not textured:  # 0 turns the second extraction off
         never = SfmOptions(num_threads=1, finer_below=0)
         _, octave = extract_finer_when_sparse(
