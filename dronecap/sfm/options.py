@@ -32,16 +32,18 @@ class SfmOptions:
     # upsampling at -2) at finer_peak_threshold: real 160-px footage and white-background
     # orbits yield 150-250 at -1 even at 0.004, and at -2 register without retries (Himax
     # test_2, test_15) and pose more accurately (lego orbit ATE 0.42 -> 0.26 %); textured
-    # flights keep -1, which is 2x faster there (benchmarks/results/sift_octave.md). 400 until
-    # session 14; 300 since the first pass keeps fewer keypoints (446-frame corridor: median
-    # 565 at 0.004, ~440 at 0.01). 0: never.
-    finer_below: int = 300
-    # SIFT contrast threshold of the first pass (COLMAP default 0.0067). 0.004 until session
-    # 14; at 0.01 the 446-frame corridor keeps 440 instead of 565 keypoints per frame and its
-    # sequential matching costs 28 instead of 50 CPU-s (docs/sfm.md "Session 14").
-    peak_threshold: float = 0.01
-    # contrast threshold of the finer re-extraction of sparse frames: today's 0.004, so sparse
-    # footage (Himax, lego) gets the keypoints it was measured with
+    # flights keep -1, which is 2x faster there (benchmarks/results/sift_octave.md). With
+    # peak_threshold 0.01 use 300 (the first pass then keeps ~440, not 565, keypoints on the
+    # 446-frame corridor). 0: never.
+    finer_below: int = 400
+    # SIFT contrast threshold of the first pass (COLMAP default 0.0067). At 0.01 the 446-frame
+    # corridor keeps 440 instead of 565 keypoints per frame, its sequential matching costs 28
+    # instead of 50 CPU-s and the whole sfm 163 instead of 181 CPU-s (docs/sfm.md "Session
+    # 14"), but on the 3901-frame flight our initial-pair search then found no pair (6 at
+    # 0.004, same flight), so the flight was not chunked: the default stays 0.004.
+    peak_threshold: float = 0.004
+    # contrast threshold of the finer re-extraction of sparse frames (0.004 is what sparse
+    # footage, Himax and lego, was measured with); matters when peak_threshold is raised
     finer_peak_threshold: float = 0.004
     clahe: bool = False  # contrast-normalise frames (capture.contrast) before SIFT
     # --- matching ---
