@@ -139,3 +139,37 @@ def test_long_flight_options_pose_a_short_corridor(corridor, tmp_path, overrides
         assert rep["matching"]["loop_detection"] == "words"
     if overrides.get("mapper") == "global":
         assert rep["global_mapper"]["frames"] > 0  # tried; kept only when the guard agrees
+
+
+def test_the_planar_fallback_widens_the_gap_past_near_duplicate_views(monkeypatch):
+    """A dense selection (every pair planar, frames 10 apart near-duplicates): the fallback
+    doubles the gap until a pair is a start COLMAP accepts, and stops there."""
+    import pycolmap
+
+    from dronecap.sfm import initial_pair
+
+    class Geometry:
+        inlier_matches = np.zeros((300, 2), np.uint32)
+
+    frames = 200
+    pairs = [(a, b) for a in range(1, frames + 1) for b in range(a + 1, min(a + 60, frames + 1))]
+    ids = [pycolmap.image_pair_to_pair_id(a, b) for a, b in pairs]
+    rank = {i: i - 1 for i in range(1, frames + 1)}
+    degrees_per_frame = 0.06  # 10 frames apart: 0.6 deg, a near-duplicate view
+    monkeypatch.setattr(
+        initial_pair,
+        "_measure_pair",
+        lambda db, images, n, a, b, g: initial_pair.PairCandidate(
+            n, degrees_per_frame * abs(a - b), 0.4, a, b
+        ),
+    )
+    opts = SfmOptions()
+    measured = initial_pair._measure_planar(
+        None, {}, (ids, [Geometry()] * len(ids)), rank, opts, 3, 50
+    )
+    gaps = {abs(c.a - c.b) for c in measured}
+    assert gaps == {2 * opts.init_max_gap}  # 20 frames: 1.2 deg, accepted; not widened further
+    assert initial_pair.rank_initial_pairs(measured, opts)
+    degrees_per_frame = 0.001  # nothing is ever accepted: it stops at the widest gap
+    last = initial_pair._measure_planar(None, {}, (ids, [Geometry()] * len(ids)), rank, opts, 3, 50)
+    assert {abs(c.a - c.b) for c in last} == {50}
