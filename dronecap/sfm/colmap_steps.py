@@ -25,6 +25,11 @@ from dronecap.sfm.initial_pair import FALLBACK_MIN_ANGLE
 from dronecap.sfm.options import FINEST_OCTAVE, SfmOptions
 from dronecap.sfm.retrieval import write_cross_flight_pairs, write_loop_pairs
 
+# Two chunk chains (sfm/chunks.py, two threads) opening one COLMAP database at the same
+# moment can make one open fail, likely on the schema an open writes ("No registered database
+# factory succeeded", seen once in the test suite at load 3): the mapper retries this often.
+OPEN_ATTEMPTS = 3
+
 TRAIN_DESCRIPTORS = 20000  # descriptors sampled to train the flight's visual vocabulary
 PAIR_TRIES = 3  # our initial pairs tried in turn (best first) until one starts a non-tiny model
 NARROW_PAIR_MARGIN = 0.8  # a pair under init_min_tri_angle starts with this x its measured angle
@@ -365,15 +370,22 @@ def incremental_map(
         options.multiple_models = False
     if image_names is not None:
         options.image_names = image_names
-    models = pycolmap.incremental_mapping(
-        database,
-        image_dir,
-        out_dir,
-        options,
-        input_path=str(input_path) if input_path is not None else "",
-        initial_image_pair_callback=lambda: on_register(2),
-        next_image_callback=lambda: on_register(1),
-    )
+    for attempt in range(OPEN_ATTEMPTS):
+        try:
+            models = pycolmap.incremental_mapping(
+                database,
+                image_dir,
+                out_dir,
+                options,
+                input_path=str(input_path) if input_path is not None else "",
+                initial_image_pair_callback=lambda: on_register(2),
+                next_image_callback=lambda: on_register(1),
+            )
+            break
+        except RuntimeError as e:  # two chunk chains opening the database at the same moment
+            if "database factory" not in str(e) or attempt == OPEN_ATTEMPTS - 1:
+                raise
+            time.sleep(0.5 * (attempt + 1))
     found = {}
     for k, rec in models.items():
         (out_dir / str(k)).mkdir(exist_ok=True)
