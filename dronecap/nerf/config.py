@@ -55,6 +55,9 @@ class TrainConfig:
     grid_carve: bool = True  # alpha datasets: cells outside the views' silhouettes stay empty
     march_steps: int = 1024  # marching step = AABB diagonal / march_steps
     max_samples_per_ray: int = 1024
+    # samples behind this transmittance are dropped before the training pass (nerf/compaction.py,
+    # Instant-NGP's compaction; 0: every marched sample is trained on)
+    train_min_transmittance: float = 1e-4
     # --- optimizer ------------------------------------------------------------------------
     lr: float = 1e-2
     betas: tuple[float, float] = (0.9, 0.99)
@@ -272,6 +275,7 @@ _RULES: dict[str, tuple[Any, str]] = {
     "grid_every": (lambda x, c: x >= 1, ">= 1"),
     "march_steps": (lambda x, c: x >= 1, ">= 1"),
     "max_samples_per_ray": (lambda x, c: x >= 1, ">= 1"),
+    "train_min_transmittance": (lambda x, c: 0 <= x < 1, "in [0, 1)"),
     "lr": (lambda x, c: x > 0, "> 0"),
     "eps": (lambda x, c: x > 0, "> 0"),
     "weight_decay": (lambda x, c: x >= 0, ">= 0"),
@@ -301,6 +305,7 @@ LEGACY_VALUES: dict[str, Any] = {
     "learn_vignetting": "off",
     "grid_carve": False,
     "far_field": "none",
+    "train_min_transmittance": 0.0,
 }
 
 

@@ -117,17 +117,28 @@ class Field(nn.Module):
                 h = F.linear(h, layer.weight.to(self.product_dtype))
         return h[:n].float()
 
-    def geometry(self, points: Tensor) -> tuple[Tensor, Tensor]:
+    def encode(self, points: Tensor) -> Tensor:
+        """Hash encoding [N, levels * features] float32 of ``points`` [N, 3] (scene units)."""
+        return self.encoding((points - self.aabb_min) / self.aabb_size)
+
+    def geometry(self, points: Tensor, encoded: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Density and geometry features.
 
         Args:
             points: [N, 3] scene units (outside the AABB is clamped to its faces).
+            encoded: :meth:`encode` of ``points`` computed earlier without autograd, or None;
+                given, the encoding is not computed again and its table gradient still flows.
 
         Returns:
             sigma [N] density per scene unit (>= 0, finite), geo [N, geo_features].
         """
         unit = (points - self.aabb_min) / self.aabb_size
-        h = self._run(self.density_mlp, round_to(self.encoding(unit), self.dtype))
+        return self.geometry_from_encoding(self.encoding(unit, cached=encoded))
+
+    def geometry_from_encoding(self, encoded: Tensor) -> tuple[Tensor, Tensor]:
+        """Density [N] per scene unit and geometry features [N, geo_features] from a hash
+        encoding [N, levels * features] (:meth:`encode`)."""
+        h = self._run(self.density_mlp, round_to(encoded, self.dtype))
         return trunc_exp(h[:, 0]), h
 
     def density(self, points: Tensor) -> Tensor:

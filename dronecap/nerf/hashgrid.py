@@ -169,14 +169,22 @@ class HashGrid(torch.nn.Module):
             return _compiled_reference()
         return hash_encode_reference
 
-    def forward(self, x: Tensor) -> Tensor:
-        """Encode ``x`` [N, 3] (unit cube, clamped) into [N, levels * features] float32."""
+    def forward(self, x: Tensor, cached: Tensor | None = None) -> Tensor:
+        """Encode ``x`` [N, 3] (unit cube, clamped) into [N, levels * features] float32.
+
+        ``cached``: this very encoding of ``x``, computed earlier without autograd (a training
+        pass after :mod:`.compaction`); with the C++ kernel it is returned as the result and
+        only the backward runs, other backends compute the encoding again.
+        """
         if self._encode is None:
             self._encode = self._resolve()
         table = (
             self.table if self.dtype == torch.float32 else _RoundTo.apply(self.table, self.dtype)
         )
-        return self._encode(x, table, self.resolutions, self.offsets, self.log2_hashmap)
+        args = (x, table, self.resolutions, self.offsets, self.log2_hashmap)
+        if cached is not None and kernel("hashgrid", self.backend) is not None:
+            return self._encode(*args, cached=cached)
+        return self._encode(*args)
 
     @torch.no_grad()
     def round_storage_(self) -> None:
@@ -208,12 +216,14 @@ class _CppEncode(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, x, table, resolutions, offsets, log2_hashmap, mode, grad_into):  # noqa: D102
+    def forward(ctx, x, table, resolutions, offsets, log2_hashmap, mode, grad_into, cached):  # noqa: D102
         ext = load_extension()
         x = x.float().contiguous()  # the kernel clamps (NaN -> 0) itself
         ctx.save_for_backward(x)
         ctx.args = (table.shape[0], table.shape[1], resolutions, offsets, log2_hashmap, mode)
         ctx.grad_into = grad_into
+        if cached is not None:  # computed earlier from the same x and table
+            return cached.clone()
         return ext.forward(x, table.contiguous(), resolutions, offsets, log2_hashmap)
 
     @staticmethod
@@ -229,7 +239,7 @@ class _CppEncode(torch.autograd.Function):
                 if leaf.grad is None:
                     leaf.grad = torch.zeros_like(leaf, memory_format=torch.contiguous_format)
                 ext.backward(grad_out, x, leaf.grad, *ctx.args)
-        return None, grad, None, None, None, None, None
+        return None, grad, None, None, None, None, None, None
 
 
 _EMPTY = torch.empty(0)
@@ -243,6 +253,7 @@ def hash_encode_cpp(
     log2_hashmap: int,
     backward_mode: str = "level",
     grad_into: torch.nn.Parameter | None = None,
+    cached: Tensor | None = None,
 ) -> Tensor:
     """The C++/OpenMP hash encoding; same arguments, result and gradient as the reference.
 
@@ -256,11 +267,14 @@ def hash_encode_cpp(
             was rounded from) whose ``.grad`` receives the table gradient added in place, with
             no full-size temporary per call ("level" mode only). Autograd then sees no gradient
             for ``table``: use with ``loss.backward()``, not ``torch.autograd.grad``.
+        cached: [N, L * F] the forward result, already computed from the same ``x`` and
+            ``table`` without autograd: returned (a copy) instead of computed again; the
+            backward is unchanged.
     Returns:
         [N, L * F] float32, differentiable w.r.t. ``table``.
     """
     mode = BACKWARD_MODES[backward_mode]
-    args = (list(resolutions), list(offsets), log2_hashmap, mode, grad_into)
+    args = (list(resolutions), list(offsets), log2_hashmap, mode, grad_into, cached)
     return _CppEncode.apply(x, table.float(), *args)
 
 

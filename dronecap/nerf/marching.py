@@ -23,7 +23,8 @@ class Samples:
     ray_indices: int64 [S]; t_starts, t_ends: float32 [S] (scene units along unit directions);
     counts: int64 [n_rays] samples per ray; t_resume: float32 [n_rays] where a further march
     of the ray continues (``t_near + e * step``, ``e`` the candidates examined; >= t_far when
-    the ray is done), or None when not computed.
+    the ray is done), or None when not computed; encoded: float32 [S, L * F] the hash encoding
+    of each sample's midpoint when :mod:`.compaction` computed it (no autograd), else None.
     """
 
     ray_indices: Tensor
@@ -31,11 +32,17 @@ class Samples:
     t_ends: Tensor
     counts: Tensor
     t_resume: Tensor | None = None
+    encoded: Tensor | None = None
 
     @property
     def n(self) -> int:
         """Total samples S."""
         return int(self.ray_indices.numel())
+
+    def midpoints(self, origins: Tensor, dirs: Tensor) -> Tensor:
+        """Each sample's midpoint [S, 3] on its ray (``origins``, ``dirs``: [R, 3])."""
+        ri = self.ray_indices
+        return torch.addcmul(origins[ri], dirs[ri], (0.5 * (self.t_starts + self.t_ends))[:, None])
 
 
 def march(
@@ -122,11 +129,13 @@ def take_rays(samples: Samples, rays: Tensor) -> Samples:
     mask = keep[samples.ray_indices]
     new_id = torch.full_like(samples.counts, -1)
     new_id[rays] = torch.arange(rays.numel(), device=rays.device)
+    enc = samples.encoded
     return Samples(
         new_id[samples.ray_indices[mask]],
         samples.t_starts[mask],
         samples.t_ends[mask],
         samples.counts[rays],
+        encoded=None if enc is None else enc[mask],
     )
 
 
@@ -143,8 +152,6 @@ def tiles(s: Samples, tile_samples: int) -> Iterator[tuple[int, int, Samples]]:
     sample_bounds = start.tolist() + [s.n]
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         sa, sb = sample_bounds[a], sample_bounds[b]
-        yield (
-            a,
-            b,
-            Samples(s.ray_indices[sa:sb] - a, s.t_starts[sa:sb], s.t_ends[sa:sb], s.counts[a:b]),
-        )
+        enc = None if s.encoded is None else s.encoded[sa:sb]
+        ri, t0, t1 = s.ray_indices[sa:sb] - a, s.t_starts[sa:sb], s.t_ends[sa:sb]
+        yield a, b, Samples(ri, t0, t1, s.counts[a:b], encoded=enc)

@@ -98,7 +98,9 @@ def update(
 
     Before ``warmup`` steps every cell is sampled; later a quarter of the cells uniformly and
     a quarter drawn among the occupied ones. With ``state.allowed`` (the visual hull) only
-    allowed cells are sampled: the others stay empty whatever the field says.
+    allowed cells are sampled, and the quarters are quarters of the allowed cells (lego: 102k
+    of 262k cells, 2.6x fewer density evaluations per update): the others stay empty whatever
+    the field says.
 
     Args:
         density_fn: points [N, 3] -> sigma [N] (scene units^-1).
@@ -111,10 +113,12 @@ def update(
     if step < cfg.warmup:
         cells = torch.arange(n, device=dev) if pool is None else pool
     else:
-        uniform = torch.randint(n, (n // 4,), generator=generator, device=dev)
-        uniform = uniform if pool is None else pool[uniform % max(pool.numel(), 1)]
+        quarter = (n if pool is None else pool.numel()) // 4
+        uniform = torch.randint(n if pool is None else max(pool.numel(), 1), (quarter,),
+                                generator=generator, device=dev)  # fmt: skip
+        uniform = uniform if pool is None else pool[uniform]
         occ = state.occupied.nonzero().squeeze(1)
-        pick = torch.randint(max(occ.numel(), 1), (n // 4,), generator=generator, device=dev)
+        pick = torch.randint(max(occ.numel(), 1), (quarter,), generator=generator, device=dev)
         cells = torch.cat([uniform, occ[pick] if occ.numel() else occ])
     fresh = torch.zeros(n, device=dev)
     for start in range(0, cells.numel(), cfg.chunk):

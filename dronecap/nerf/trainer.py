@@ -26,7 +26,7 @@ from dronecap.camera import Camera
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
-from . import carve, occupancy
+from . import carve, compaction, occupancy
 from .batch import RayBatch, draw_rays, whole_rays
 from .checkpoint import checkpoint_resolved, read_checkpoint, write_checkpoint
 from .config import TrainConfig
@@ -180,7 +180,8 @@ class Trainer:
             self.adopt(Resolved(steps, r.scene, r.reasons | {"steps": why}, r.dataset_sha256))
 
     def _march_batch(self) -> tuple[RayBatch, Samples]:
-        """Rays of one step and their samples, cut to at most B samples (whole rays)."""
+        """Rays of one step and their samples: at most B marched samples (whole rays), less the ones
+        behind an opaque surface (:mod:`.compaction`, with their encodings)."""
         cfg = self.cfg
         n_rays = int(
             np.clip(cfg.batch_samples / max(self.samples_per_ray, 1e-3), 16, cfg.batch_samples)
@@ -193,7 +194,10 @@ class Trainer:
             cfg.max_samples_per_ray, jitter,
         )  # fmt: skip
         self.samples_per_ray = max(s.n / n_rays, 0.01)
-        return whole_rays(rays, s, cfg.batch_samples)
+        rays, s = whole_rays(rays, s, cfg.batch_samples)
+        return rays, compaction.visible(
+            s, rays.origins, rays.dirs, self.field, cfg.train_min_transmittance
+        )
 
     def _render_rays(self, origins, dirs, s: Samples, bg) -> tuple[torch.Tensor, torch.Tensor]:
         """Colour [R, C] of rays through the field (with autograd) and each ray's distortion
@@ -201,9 +205,8 @@ class Trainer:
         field = self.field
         dir_enc = field.dir_encoding(dirs)  # once per ray, gathered per sample
 
-        def color_sigma(t0, t1, ri):
-            pts = origins[ri] + dirs[ri] * (0.5 * (t0 + t1)).unsqueeze(-1)
-            sigma, geo = field.geometry(pts)
+        def color_sigma(t0, t1, ri):  # the samples of ``s``, in order
+            sigma, geo = field.geometry(s.midpoints(origins, dirs), s.encoded)
             return field.color_from_encoding(geo, dir_enc[ri]), sigma
 
         behind = field.behind(dirs, bg)  # the far field or the fixed background

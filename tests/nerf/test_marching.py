@@ -88,3 +88,20 @@ def test_grid_update_thresholds_density():
     # after warm-up with zero density, the EMA decays
     st2 = occupancy.update(cfg, st, 20, lambda p: torch.zeros(len(p)), BOX, 0.01, g)
     assert math.isclose(float(st2.density.max()), 0.95, rel_tol=1e-6)
+
+
+def test_grid_update_after_warm_up_samples_quarters_of_the_allowed_cells():
+    cfg = occupancy.GridConfig(res=8, warmup=0)
+    allowed = torch.zeros(512, dtype=torch.bool)
+    allowed[:64] = True  # the visual hull: 64 of 512 cells
+    st = occupancy.restrict(occupancy.init_state(cfg), allowed)
+    seen = []
+
+    def density(p):
+        seen.append(occupancy.cell_index(p, BOX, 8))
+        return torch.ones(len(p))
+
+    occupancy.update(cfg, st, 300, density, BOX, 0.01, torch.Generator().manual_seed(0))
+    cells = torch.cat(seen)
+    assert cells.numel() == 2 * (64 // 4)  # a quarter uniform + a quarter occupied, of 64
+    assert bool(allowed[cells].all())  # never outside the hull
