@@ -241,6 +241,7 @@ def train_run(
         "ms_per_step_median": float(np.median(ms)) if ms else None,
         "threads": torch.get_num_threads(),
         "parameters": trainer.field.parameter_count(),
+        "samples": trainer.sample_counts(),
         "photometric": trainer.photometric.summary(),
         "config": dataclasses.asdict(trainer.cfg),
         "reasons": dict(trainer.resolved.reasons),

@@ -109,6 +109,9 @@ class Trainer:
         )
         self.grid = occupancy.init_state(self.grid_cfg, self.device)
         self.step, self.train_seconds = 0, 0.0
+        # samples marched (at most B per step) and trained on after compaction, over the run:
+        # what the GAP9 cost model needs to know of a run (gap9.model.cost_report's fractions)
+        self.samples_marched, self.samples_trained = 0, 0
         self.samples_per_ray = float(min(cfg.max_samples_per_ray, cfg.march_steps))
         self.images = None
         self.camera: Camera | None = None
@@ -195,9 +198,11 @@ class Trainer:
         )  # fmt: skip
         self.samples_per_ray = max(s.n / n_rays, 0.01)
         rays, s = whole_rays(rays, s, cfg.batch_samples)
-        return rays, compaction.visible(
-            s, rays.origins, rays.dirs, self.field, cfg.train_min_transmittance
-        )
+        thresh = cfg.train_min_transmittance
+        kept = compaction.visible(s, rays.origins, rays.dirs, self.field, thresh)
+        self.samples_marched += s.n
+        self.samples_trained += kept.n
+        return rays, kept
 
     def _render_rays(self, origins, dirs, s: Samples, bg) -> tuple[torch.Tensor, torch.Tensor]:
         """Colour [R, C] of rays through the field (with autograd) and each ray's distortion
@@ -353,6 +358,7 @@ class Trainer:
                 "grid": self.grid_state(),
                 "step": self.step,
                 "train_seconds": self.train_seconds,
+                "samples": [self.samples_marched, self.samples_trained],
                 "samples_per_ray": self.samples_per_ray,
                 "rng": {"generator": self.generator.get_state(), "torch": torch.get_rng_state()},
                 "intrinsics": None if self.camera is None else dataclasses.asdict(self.camera),
@@ -390,6 +396,7 @@ class Trainer:
         self.load_grid_state(ck["grid"])
         self.step = int(ck["step"])
         self.train_seconds = float(ck["train_seconds"])
+        self.samples_marched, self.samples_trained = ck.get("samples", (0, 0))  # none before
         self.samples_per_ray = float(ck["samples_per_ray"])
         self.generator.set_state(ck["rng"]["generator"])
         torch.set_rng_state(ck["rng"]["torch"])
@@ -447,6 +454,15 @@ class Trainer:
     def evaluate_all(self, test: Dataset, progress: bool = False) -> dict:
         """:meth:`evaluate` on all test views, keeping the renders under "images"."""
         return self.evaluate(test, None, progress, keep_images=True)
+
+    def sample_counts(self) -> dict[str, float]:
+        """What a run's steps worked on: {"marched", "trained"}: samples over the run (trained:
+        after compaction), "hull_fraction": the share of occupancy cells the visual hull allows
+        (1.0 without alpha masks)."""
+        allowed = self.grid.allowed
+        hull = 1.0 if allowed is None else float(allowed.float().mean())
+        return {"marched": self.samples_marched, "trained": self.samples_trained,
+                "hull_fraction": hull}  # fmt: skip
 
     def parameter_count(self) -> int:
         """Trainable parameters (hash table + MLPs + far field)."""

@@ -34,7 +34,9 @@ A swarm (several drones) is never chunked: chunks of two drones' flights share n
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
+import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -107,8 +109,11 @@ def map_chunks(
     """Map every chunk but the ``start`` one (chunk index, its model folder), each resumed
     from its neighbour's seed, the :func:`mapping_chains` in up to ``opts.chunk_workers``
     threads (pycolmap's mapper releases the GIL), the cores shared among the chains still
-    mapping when a chunk starts. Returns each chunk's model folder, in chunk order; None for a
-    chunk that could not be mapped (nor the ones beyond it in its chain)."""
+    mapping when a chunk starts. Each chain but the first maps from its own copy of the
+    database: two mappers opening one SQLite file at the same moment can fail ("No registered
+    database factory succeeded", seen in the test suite). Returns each chunk's model folder, in
+    chunk order; None for a chunk that could not be mapped (nor the ones beyond it in its
+    chain)."""
     models: list[Path | None] = [None] * len(chunks)
     models[start[0]] = start[1]
     chains = mapping_chains(chunks, start[0])
@@ -120,7 +125,11 @@ def map_chunks(
         with lock:  # one event at a time from either chain
             on_register(k)
 
-    def run(chain: list[tuple[int, int]]) -> None:
+    databases = [database] + [
+        _copy(database, work / CHUNKS / f"chain{i}.db") for i in range(1, workers)
+    ]
+
+    def run(chain: list[tuple[int, int]], database: Path) -> None:
         for k, prev in chain:
             if models[prev] is None:
                 break
@@ -136,8 +145,17 @@ def map_chunks(
             running[0] -= 1
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        list(pool.map(run, chains))
+        list(pool.map(run, chains, itertools.cycle(databases)))
+    for copy in databases[1:]:
+        copy.unlink()
     return models
+
+
+def _copy(database: Path, to: Path) -> Path:
+    """A copy of the COLMAP ``database`` at ``to`` (one chain's own)."""
+    to.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(database, to)
+    return to
 
 
 def chunk_threads(chains: int) -> int:

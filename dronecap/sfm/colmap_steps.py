@@ -26,8 +26,9 @@ from dronecap.sfm.options import FINEST_OCTAVE, SfmOptions
 from dronecap.sfm.retrieval import write_cross_flight_pairs, write_loop_pairs
 
 # Two chunk chains (sfm/chunks.py, two threads) opening one COLMAP database at the same
-# moment can make one open fail, likely on the schema an open writes ("No registered database
-# factory succeeded", seen once in the test suite at load 3): the mapper retries this often.
+# moment made one open fail once in the test suite at load 3 ("No registered database factory
+# succeeded"; the cause inside COLMAP is not known). The chains now open copies of their own;
+# the mapper still retries such a failed open this often, in case the cause is not the file.
 OPEN_ATTEMPTS = 3
 
 TRAIN_DESCRIPTORS = 20000  # descriptors sampled to train the flight's visual vocabulary

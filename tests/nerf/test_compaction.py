@@ -81,3 +81,17 @@ def test_training_on_reused_encodings_gives_the_same_colour_and_gradients():
     for a, b in zip(*grads, strict=True):
         assert torch.allclose(a, b, atol=1e-6)
     assert grads[1][0].abs().sum() > 0  # the hash table got its gradient through the cache
+
+
+def test_a_run_counts_what_it_marched_and_trained_and_a_checkpoint_keeps_it(cube_rgb, tmp_path):
+    from dronecap.nerf.resolve import resolve
+    from dronecap.nerf.trainer import Trainer
+
+    cfg = preset("test").replace(steps=40, seed=0)
+    tr = Trainer(resolve(cfg, cube_rgb), cube_rgb)
+    tr.train(40)
+    n = tr.sample_counts()
+    assert 0 < n["trained"] <= n["marched"] <= 40 * cfg.batch_samples
+    assert n["hull_fraction"] < 1.0  # the cube has alpha: the grid is carved
+    tr.save(tmp_path / "ck.pt")
+    assert Trainer.load(tmp_path / "ck.pt", train=cube_rgb).sample_counts() == n
