@@ -112,6 +112,7 @@ class Trainer:
         # samples marched (at most B per step) and trained on after compaction, over the run:
         # what the GAP9 cost model needs to know of a run (gap9.model.cost_report's fractions)
         self.samples_marched, self.samples_trained = 0, 0
+        self.dropped = 1.0  # share of the samples compaction dropped when it last ran
         self.samples_per_ray = float(min(cfg.max_samples_per_ray, cfg.march_steps))
         self.images = None
         self.camera: Camera | None = None
@@ -184,7 +185,7 @@ class Trainer:
 
     def _march_batch(self) -> tuple[RayBatch, Samples]:
         """Rays of one step and their samples: at most B marched samples (whole rays), less the ones
-        behind an opaque surface (:mod:`.compaction`, with their encodings)."""
+        behind an opaque surface when compaction is due (:mod:`.compaction`; with encodings)."""
         cfg = self.cfg
         n_rays = int(
             np.clip(cfg.batch_samples / max(self.samples_per_ray, 1e-3), 16, cfg.batch_samples)
@@ -198,8 +199,10 @@ class Trainer:
         )  # fmt: skip
         self.samples_per_ray = max(s.n / n_rays, 0.01)
         rays, s = whole_rays(rays, s, cfg.batch_samples)
-        thresh = cfg.train_min_transmittance
-        kept = compaction.visible(s, rays.origins, rays.dirs, self.field, thresh)
+        kept, thresh = s, cfg.train_min_transmittance
+        if thresh > 0 and compaction.due(self.step, self.dropped):
+            kept = compaction.visible(s, rays.origins, rays.dirs, self.field, thresh)
+            self.dropped = 1.0 - kept.n / max(s.n, 1)
         self.samples_marched += s.n
         self.samples_trained += kept.n
         return rays, kept

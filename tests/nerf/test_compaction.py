@@ -95,3 +95,12 @@ def test_a_run_counts_what_it_marched_and_trained_and_a_checkpoint_keeps_it(cube
     assert n["hull_fraction"] < 1.0  # the cube has alpha: the grid is carved
     tr.save(tmp_path / "ck.pt")
     assert Trainer.load(tmp_path / "ck.pt", train=cube_rgb).sample_counts() == n
+
+
+def test_the_pre_pass_runs_while_it_pays_and_probes_now_and_then():
+    from dronecap.nerf.compaction import MIN_DROPPED, PROBE_EVERY, due
+
+    assert due(0, 1.0) and due(7, MIN_DROPPED)  # never measured; dropping enough
+    assert not due(7, MIN_DROPPED / 2)  # a scene where nearly every sample shows
+    steps = [s for s in range(64) if due(s, 0.0)]
+    assert steps == list(range(0, 64, PROBE_EVERY))  # measured again now and then
