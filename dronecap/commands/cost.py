@@ -93,33 +93,41 @@ def platform(args: Settings):
 
 
 def _config(args: Settings):
-    """(TrainConfig, default JSON path) from RUN_DIR (the resolved configuration it was
-    trained with), --preset or the default preset, + --set."""
+    """(TrainConfig, default JSON path, RunSamples) from RUN_DIR (the resolved configuration
+    it was trained with, the samples its metrics.json records when it has one), --preset or
+    the default preset (no run: the defaults), + --set."""
     from dronecap import workspace
     from dronecap.errors import InputError
+    from dronecap.gap9.model import RunSamples, deployed
     from dronecap.nerf.config import apply_sets, preset
     from dronecap.nerf.resolve import check_config
-    from dronecap.nerf.run_dir import COST, read_resolved
+    from dronecap.nerf.run_dir import COST, METRICS, read_resolved
 
     if args.run_dir and args.preset:
         raise InputError("give either RUN_DIR or --preset, not both")
     if args.run_dir:
-        from dronecap.gap9.model import deployed
-
         cfg = deployed(read_resolved(args.run_dir).config)
         default_out = Path(args.run_dir) / COST
+        metrics = Path(args.run_dir) / METRICS
+        try:  # a run still training (or never evaluated) has no metrics yet
+            run = RunSamples.from_metrics(json.loads(metrics.read_text()))
+        except FileNotFoundError:
+            run = RunSamples()
+        except (ValueError, KeyError, TypeError) as err:
+            raise InputError(f"unreadable samples: {err}", str(metrics)) from err
     else:
         try:
             cfg = preset(args.preset or "tiny-dronerf")
         except KeyError as err:
             raise InputError(str(err.args[0])) from err
         default_out = workspace.resolve(args.workdir, None, workspace.COST)
+        run = RunSamples()
     try:
         cfg = apply_sets(cfg, args.set)
     except (ValueError, TypeError) as err:
         raise InputError(str(err)) from err
     check_config(cfg)
-    return cfg, default_out
+    return cfg, default_out, run
 
 
 def _report(args: Settings) -> int:
@@ -127,9 +135,11 @@ def _report(args: Settings) -> int:
     from dronecap.files import atomic_output
     from dronecap.gap9.model import cost_report, format_report
 
-    cfg, default_out = _config(args)
+    cfg, default_out, run = _config(args)
     try:
-        rep = cost_report(cfg, platform(args), samples_per_pixel=args.spp, n_images=args.images)
+        rep = cost_report(
+            cfg, platform(args), samples_per_pixel=args.spp, n_images=args.images, run=run
+        )
     except (ValueError, ZeroDivisionError) as err:
         raise InputError(f"impossible configuration: {err}") from err
     print(format_report(rep))

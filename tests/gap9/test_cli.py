@@ -238,3 +238,18 @@ def test_search_ranks_runs_by_energy_to_a_psnr(tmp_path, capsys):
     # same model: energy grows with the steps (the warm-up is paid by both)
     assert float(fast[3]) < float(slow[3])
     assert "never reached" in out and "SoC power: 60 mW" in out and "ASSUMPTION" in out
+
+
+def test_run_dir_cost_uses_the_runs_samples(tmp_path):
+    cfg = preset("scene-sized").replace(n_max=223, log2_hashmap=14, grid_res=64)
+    _run_json(tmp_path / "run", cfg)
+    assert main(["cost", str(tmp_path / "run")]) == 0  # still training: no metrics.json yet
+    before = json.loads((tmp_path / "run" / "cost.json").read_text())
+    samples = {"marched": 1000, "trained": 430, "hull_fraction": 0.389}
+    (tmp_path / "run" / "metrics.json").write_text(json.dumps({"samples": samples}))
+    assert main(["cost", str(tmp_path / "run")]) == 0
+    after = json.loads((tmp_path / "run" / "cost.json").read_text())
+    assert before["assumptions"]["trained_fraction"] == 1.0
+    assert after["assumptions"]["trained_fraction"] == pytest.approx(0.43)
+    assert after["assumptions"]["hull_fraction"] == pytest.approx(0.389)
+    assert after["latency"]["train"] < before["latency"]["train"]
