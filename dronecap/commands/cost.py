@@ -1,7 +1,7 @@
 """`dronecap cost`: the GAP9 cost report of a configuration, the Table II check, the budget search.
 
 dronecap cost [--preset NAME | RUN_DIR] [--platform gap9.yaml] [--set field=value ...]
-              [--json out.json]
+              [--grid-rule trainer|fixed] [--json out.json]
 dronecap cost --table2
 dronecap cost --search --budget-l3 32MB [--budget-l2 1.5MB] [--budget-l1 128kB]
               [--runs runs/*/metrics.json] [--plot pareto.png] [--target-psnr 26.94]
@@ -14,6 +14,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from dronecap.gap9.arch import DEFAULT_GRID_RULE, GRID_RULES
 from dronecap.gap9.platform import parse_bytes
 from dronecap.settings import Settings as Base
 from dronecap.settings import setting
@@ -50,6 +51,12 @@ class Settings(Base):
     spp: float = setting(13.0, help="samples per ray/pixel (default 13)")
     images: int | None = setting(
         None, minimum=1, help="training images stored aboard (default: config)"
+    )
+    grid_rule: str = setting(
+        DEFAULT_GRID_RULE,
+        choices=GRID_RULES,
+        help="occupancy updates: the trainer's rule (Instant-NGP's growing interval) or fixed "
+        "(every step in the warm-up, then every grid_every steps: the paper's GAP9 run)",
     )
     table2: bool = setting(False, help="compare the model with the paper's Table II")
     search: bool = setting(False, help="list configurations fitting budgets")
@@ -138,7 +145,12 @@ def _report(args: Settings) -> int:
     cfg, default_out, run = _config(args)
     try:
         rep = cost_report(
-            cfg, platform(args), samples_per_pixel=args.spp, n_images=args.images, run=run
+            cfg,
+            platform(args),
+            samples_per_pixel=args.spp,
+            n_images=args.images,
+            run=run,
+            grid_rule=args.grid_rule,
         )
     except (ValueError, ZeroDivisionError) as err:
         raise InputError(f"impossible configuration: {err}") from err

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 from dronecap.gap9.platform import Numerics
 from dronecap.nerf import levels
@@ -334,6 +334,8 @@ GridRule = Literal["trainer", "fixed"]
 (:func:`dronecap.nerf.occupancy.due`, Instant-NGP's: the interval grows as
 ``clamp(step // 16, 1, grid_every)``); "fixed" is the paper's GAP9 run as it states it, every
 step for ``grid_warmup`` steps, then every ``grid_every`` steps."""
+GRID_RULES: tuple[GridRule, ...] = get_args(GridRule)
+DEFAULT_GRID_RULE: GridRule = "trainer"  # a run on GAP9 updates its grid as the trainer did
 
 
 @dataclass(frozen=True)
@@ -358,7 +360,7 @@ class GridSchedule:
 
 @functools.lru_cache(maxsize=256)
 def grid_updates(
-    steps: int, warmup: int, every: int, rule: GridRule = "trainer"
+    steps: int, warmup: int, every: int, rule: GridRule = DEFAULT_GRID_RULE
 ) -> tuple[int, int]:
     """(updates before step ``warmup``, updates from it on) over ``steps`` optimizer steps.
 
@@ -379,7 +381,7 @@ def grid_updates(
 
 
 def grid_schedule(
-    cfg: TrainConfig, hull_fraction: float = 1.0, rule: GridRule = "trainer"
+    cfg: TrainConfig, hull_fraction: float = 1.0, rule: GridRule = DEFAULT_GRID_RULE
 ) -> GridSchedule:
     """The occupancy updates of ``cfg.steps`` steps by ``rule`` (:func:`grid_updates`): warm-up
     updates query every cell of the visual hull (``hull_fraction`` of the ``grid_res^3``

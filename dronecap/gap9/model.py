@@ -417,7 +417,7 @@ def cost_report(
     n_images: int | None = None,
     clients: int = 4,
     run: RunSamples | None = None,
-    grid_rule: arch.GridRule = "trainer",
+    grid_rule: arch.GridRule = arch.DEFAULT_GRID_RULE,
 ) -> dict:
     """The whole cost of ``cfg`` on ``platform`` (default GAP9) as a JSON-able nested dict.
 

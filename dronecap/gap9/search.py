@@ -18,6 +18,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from dronecap.gap9.arch import DEFAULT_GRID_RULE, GridRule
 from dronecap.gap9.model import RunSamples, cost_report, deployed
 from dronecap.gap9.platform import Platform
 from dronecap.nerf.config import TrainConfig, config_from_dict, preset
@@ -150,22 +151,30 @@ def evaluate(points: list[Point], budget: Budget, platform: Platform | None = No
 
 
 def to_target(
-    points: list[Point], target_db: float, platform: Platform | None = None
+    points: list[Point],
+    target_db: float,
+    platform: Platform | None = None,
+    grid_rule: GridRule = DEFAULT_GRID_RULE,
 ) -> list[dict]:
     """The modelled GAP9 cost of each point's run up to ``target_db``, cheapest energy first.
 
     Each point is costed in GAP9 tiles (:func:`deployed`) for the steps it took to reach the
     target (:meth:`Point.steps_to`), with its run's trained and hull fractions (averaged over
-    all its steps); points that never reached it come last, with None.
-    Returns dicts: label, steps, ``joules``, ``minutes`` (GAP9 training time), mem_mb.
+    all its steps) and its grid updated by ``grid_rule``; points that never reached it come
+    last, with None.
+    Returns dicts: label, steps, ``joules``, ``minutes`` (GAP9 training time), mem_mb,
+    ``trained`` and ``hull`` (the run's fractions, :class:`RunSamples`).
     """
     rows = []
     for pt in points:
         steps = pt.steps_to(target_db)
         row = {"label": pt.label, "steps": steps, "mem_mb": pt.mem_mb, "joules": None,
-               "minutes": None}  # fmt: skip
+               "minutes": None, "trained": pt.run.trained_fraction,
+               "hull": pt.run.hull_fraction}  # fmt: skip
         if steps is not None:
-            rep = cost_report(deployed(pt.cfg.replace(steps=steps)), platform, run=pt.run)
+            rep = cost_report(
+                deployed(pt.cfg.replace(steps=steps)), platform, run=pt.run, grid_rule=grid_rule
+            )
             row |= {"joules": rep["energy"]["run"], "minutes": rep["latency"]["train"] / 60}
         rows.append(row)
     return sorted(rows, key=lambda r: (r["joules"] is None, r["joules"] or 0.0))

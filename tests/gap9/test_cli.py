@@ -253,3 +253,17 @@ def test_run_dir_cost_uses_the_runs_samples(tmp_path):
     assert after["assumptions"]["trained_fraction"] == pytest.approx(0.43)
     assert after["assumptions"]["hull_fraction"] == pytest.approx(0.389)
     assert after["latency"]["train"] < before["latency"]["train"]
+
+
+def test_grid_rule_option_costs_the_papers_fixed_schedule(tmp_path):
+    """The paper's run (every 256 steps, no warm-up) as flown: 39 updates in 10k steps; the
+    trainer's rule on the same settings updates every step at first (340 updates)."""
+    sets = ["--preset", "tiny-dronerf", "--set", "grid_every=256", "--set", "grid_warmup=0"]
+    reps = {}
+    for rule in ("fixed", "trainer"):
+        out = tmp_path / f"{rule}.json"
+        assert main(["cost", *sets, "--grid-rule", rule, "--json", str(out)]) == 0
+        reps[rule] = json.loads(out.read_text())
+    assert reps["fixed"]["assumptions"]["grid_updates"] == {"warmup": 0, "steady": 39}
+    assert reps["trainer"]["assumptions"]["grid_updates"] == {"warmup": 0, "steady": 340}
+    assert reps["fixed"]["latency"]["train"] < reps["trainer"]["latency"]["train"]
