@@ -1,7 +1,7 @@
 """`dronecap cost`: the GAP9 cost report of a configuration, the Table II check, the budget search.
 
 dronecap cost [--preset NAME | RUN_DIR] [--platform gap9.yaml] [--set field=value ...]
-              [--json out.json]
+              [--grid-rule trainer|fixed] [--json out.json]
 dronecap cost --table2
 dronecap cost --search --budget-l3 32MB [--budget-l2 1.5MB] [--budget-l1 128kB]
               [--runs runs/*/metrics.json] [--plot pareto.png] [--target-psnr 26.94]
@@ -14,6 +14,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from dronecap.gap9.arch import DEFAULT_GRID_RULE, GRID_RULES
 from dronecap.gap9.platform import parse_bytes
 from dronecap.settings import Settings as Base
 from dronecap.settings import setting
@@ -50,6 +51,12 @@ class Settings(Base):
     spp: float = setting(13.0, help="samples per ray/pixel (default 13)")
     images: int | None = setting(
         None, minimum=1, help="training images stored aboard (default: config)"
+    )
+    grid_rule: str = setting(
+        DEFAULT_GRID_RULE,
+        choices=GRID_RULES,
+        help="occupancy updates: the trainer's rule (Instant-NGP's growing interval) or fixed "
+        "(every step in the warm-up, then every grid_every steps: the paper's GAP9 run)",
     )
     table2: bool = setting(False, help="compare the model with the paper's Table II")
     search: bool = setting(False, help="list configurations fitting budgets")
@@ -93,33 +100,41 @@ def platform(args: Settings):
 
 
 def _config(args: Settings):
-    """(TrainConfig, default JSON path) from RUN_DIR (the resolved configuration it was
-    trained with), --preset or the default preset, + --set."""
+    """(TrainConfig, default JSON path, RunSamples) from RUN_DIR (the resolved configuration
+    it was trained with, the samples its metrics.json records when it has one), --preset or
+    the default preset (no run: the defaults), + --set."""
     from dronecap import workspace
     from dronecap.errors import InputError
+    from dronecap.gap9.model import RunSamples, deployed
     from dronecap.nerf.config import apply_sets, preset
     from dronecap.nerf.resolve import check_config
-    from dronecap.nerf.run_dir import COST, read_resolved
+    from dronecap.nerf.run_dir import COST, METRICS, read_resolved
 
     if args.run_dir and args.preset:
         raise InputError("give either RUN_DIR or --preset, not both")
     if args.run_dir:
-        from dronecap.gap9.model import deployed
-
         cfg = deployed(read_resolved(args.run_dir).config)
         default_out = Path(args.run_dir) / COST
+        metrics = Path(args.run_dir) / METRICS
+        try:  # a run still training (or never evaluated) has no metrics yet
+            run = RunSamples.from_metrics(json.loads(metrics.read_text()))
+        except FileNotFoundError:
+            run = RunSamples()
+        except (ValueError, KeyError, TypeError) as err:
+            raise InputError(f"unreadable samples: {err}", str(metrics)) from err
     else:
         try:
             cfg = preset(args.preset or "tiny-dronerf")
         except KeyError as err:
             raise InputError(str(err.args[0])) from err
         default_out = workspace.resolve(args.workdir, None, workspace.COST)
+        run = RunSamples()
     try:
         cfg = apply_sets(cfg, args.set)
     except (ValueError, TypeError) as err:
         raise InputError(str(err)) from err
     check_config(cfg)
-    return cfg, default_out
+    return cfg, default_out, run
 
 
 def _report(args: Settings) -> int:
@@ -127,9 +142,16 @@ def _report(args: Settings) -> int:
     from dronecap.files import atomic_output
     from dronecap.gap9.model import cost_report, format_report
 
-    cfg, default_out = _config(args)
+    cfg, default_out, run = _config(args)
     try:
-        rep = cost_report(cfg, platform(args), samples_per_pixel=args.spp, n_images=args.images)
+        rep = cost_report(
+            cfg,
+            platform(args),
+            samples_per_pixel=args.spp,
+            n_images=args.images,
+            run=run,
+            grid_rule=args.grid_rule,
+        )
     except (ValueError, ZeroDivisionError) as err:
         raise InputError(f"impossible configuration: {err}") from err
     print(format_report(rep))

@@ -82,24 +82,28 @@ def search(args: Settings) -> int:
     if drawn is not None:
         print(f"wrote {drawn}")
     if args.target_psnr is not None:
-        _print_to_target(points, args.target_psnr, target, title)
+        _print_to_target(points, args.target_psnr, target, title, args.grid_rule)
     return 0
 
 
-def _print_to_target(points: list, target_db: float, target, title: str) -> None:
-    """The points ranked by modelled GAP9 energy to ``target_db`` (cheapest first)."""
+def _print_to_target(points: list, target_db: float, target, title: str, grid_rule: str) -> None:
+    """The points ranked by modelled GAP9 energy to ``target_db`` (cheapest first), their
+    grids updated by ``grid_rule``."""
     from dronecap.gap9.energy import assumptions
     from dronecap.gap9.search import to_target
 
-    print(f"to {target_db:g} dB on {target.name} ({title}), cheapest energy first:")
-    print(f"{'run':<20} {'steps':>6} {'GAP9 min':>9} {'energy J':>9} {'Mem MB':>7}")
-    for r in to_target(points, target_db, target):
+    print(f"to {target_db:g} dB on {target.name} ({title}; {grid_rule} grid rule), "
+          "cheapest energy first:")  # fmt: skip
+    print(f"{'run':<20} {'steps':>6} {'GAP9 min':>9} {'energy J':>9} {'Mem MB':>7} "
+          f"{'trained':>7} {'hull':>5}")  # fmt: skip
+    for r in to_target(points, target_db, target, grid_rule):
+        shares = f"{r['trained']:>7.2f} {r['hull']:>5.2f}"
         if r["steps"] is None:
-            print(f"{r['label']:<20} {'never reached':>26} {r['mem_mb']:>7.1f}")
+            print(f"{r['label']:<20} {'never reached':>26} {r['mem_mb']:>7.1f} {shares}")
         else:
             print(
                 f"{r['label']:<20} {r['steps']:>6} {r['minutes']:>9.1f} {r['joules']:>9.1f} "
-                f"{r['mem_mb']:>7.1f}"
+                f"{r['mem_mb']:>7.1f} {shares}"
             )
     for name, text in assumptions(target).items():
         print(f"  {name}: {text}")

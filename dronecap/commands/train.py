@@ -101,7 +101,7 @@ def run(s: Settings) -> int:
         cfg = cfg.replace(lr_final_ratio=BUDGET_LR_FINAL_RATIO)  # a short schedule decays less
     dataset = workspace.resolve(s.workdir, s.dataset, workspace.DATASET)
     out = workspace.resolve(s.workdir, s.out, workspace.TRAIN_RUN)
-    from dronecap.gap9.model import cost_report, deployed, memory_bytes
+    from dronecap.gap9.model import RunSamples, cost_report, deployed, memory_bytes
     from dronecap.nerf.run_dir import COST, read_resolved, train_run, write_json
 
     use_torch_threads(s.threads)
@@ -118,9 +118,11 @@ def run(s: Settings) -> int:
         memory_fn=memory_bytes,
         until=until,
     )
-    # the run's GAP9 cost, priced on the steps trained (run.json: the NeRF core never imports
-    # the cost model); the same report `dronecap cost RUN_DIR` gives with its defaults
-    write_json(out / COST, cost_report(deployed(read_resolved(out).config)))
+    # the run's GAP9 cost, priced on the steps trained and the samples they trained on
+    # (run.json, metrics: the NeRF core never imports the cost model); the same report
+    # `dronecap cost RUN_DIR` gives with its defaults
+    samples = RunSamples.from_metrics(m)
+    write_json(out / COST, cost_report(deployed(read_resolved(out).config), run=samples))
     done = (
         f"{out}: {m['steps']} steps in {m['train_seconds']:.0f} s "
         f"(median step {m['ms_per_step_median'] or 0:.1f} ms)"

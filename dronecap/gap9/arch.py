@@ -13,7 +13,9 @@ is what reproduces Table II (see docs/gap9.md), so ``hash_rows="paper"`` is the 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 from dronecap.gap9.platform import Numerics
 from dronecap.nerf import levels
@@ -273,6 +275,37 @@ def ops_per_sample(cfg: TrainConfig) -> dict[str, dict[str, int]]:
     }
 
 
+def prepass_ops_per_sample(cfg: TrainConfig) -> dict[str, int]:
+    """Forward ops per marched sample of compaction's pre-pass (:mod:`dronecap.nerf.compaction`):
+    the hash encoding, the density MLP with its ReLUs and exp, and the transmittance scan
+    (alpha and T of the rendering forward) that finds the samples behind an opaque surface.
+
+    A GAP9 tile keeps these forward blobs in L2 whatever the pass, so its training pass on the
+    kept samples reuses them and spends the rest of :func:`ops_per_sample` (the CPU trainer,
+    under autograd, runs the density MLP forward again). tiny-dronerf: 1728 + 6144 + 71.
+    """
+    return {
+        "hash": hash_ops_per_sample(cfg),
+        "density_mlp": 2 * mlp_macs(cfg, "density"),
+        "elementwise": RELU_OPS * cfg.hidden * cfg.density_layers + DENSITY_ACT_OPS
+        + RENDER_FWD_BASE_OPS,
+    }  # fmt: skip
+
+
+def kernel_shares(cfg: TrainConfig, trained_fraction: float) -> dict[str, dict[str, float]]:
+    """Share of a full tile's ops (:func:`ops_per_sample` x samples) each kernel spends when
+    compaction trains on ``trained_fraction`` of the marched samples, by pass and kernel: the
+    pre-pass part of a forward kernel runs on every sample, the rest of it and every backward
+    kernel on the trained ones. 1.0 everywhere at ``trained_fraction`` 1 (no compaction)."""
+    per, pre = ops_per_sample(cfg), prepass_ops_per_sample(cfg)
+    f = trained_fraction
+    return {
+        "forward": {k: (pre.get(k, 0) + f * (v - pre.get(k, 0))) / v
+                    for k, v in per["forward"].items()},
+        "backward": dict.fromkeys(per["backward"], f),
+    }  # fmt: skip
+
+
 def loss_ops_per_ray(cfg: TrainConfig) -> int:
     """Huber loss forward + backward per ray (per channel), and the far field's colour behind
     the ray when the model has one (:func:`far_field_ops_per_ray`)."""
@@ -296,14 +329,23 @@ def density_query_ops(cfg: TrainConfig) -> int:
     )
 
 
+GridRule = Literal["trainer", "fixed"]
+"""When the occupancy grid is updated: "trainer" is the trainer's own rule
+(:func:`dronecap.nerf.occupancy.due`, Instant-NGP's: the interval grows as
+``clamp(step // 16, 1, grid_every)``); "fixed" is the paper's GAP9 run as it states it, every
+step for ``grid_warmup`` steps, then every ``grid_every`` steps."""
+GRID_RULES: tuple[GridRule, ...] = get_args(GridRule)
+DEFAULT_GRID_RULE: GridRule = "trainer"  # a run on GAP9 updates its grid as the trainer did
+
+
 @dataclass(frozen=True)
 class GridSchedule:
     """Occupancy-grid updates over a run of ``cfg.steps`` steps."""
 
-    warmup_updates: int  # updates of every cell (the first grid_warmup steps, one per step)
-    steady_updates: int  # later updates, every grid_every steps
-    warmup_queries: int  # cells queried by one warm-up update (all)
-    steady_queries: int  # cells queried by a later update (1/4 uniform + 1/4 occupied = 1/2)
+    warmup_updates: int  # updates before step grid_warmup: every cell of the hull
+    steady_updates: int  # later updates
+    warmup_queries: int  # cells queried by one warm-up update (the hull's cells)
+    steady_queries: int  # cells queried by a later update (1/4 uniform + 1/4 occupied of the hull)
 
     @property
     def total_queries(self) -> int:
@@ -316,11 +358,36 @@ class GridSchedule:
         return self.warmup_updates + self.steady_updates
 
 
-def grid_schedule(cfg: TrainConfig) -> GridSchedule:
-    """Instant-NGP's schedule: every step for ``grid_warmup`` steps on all cells, then every
-    ``grid_every`` steps on half of them. 35k steps, warm-up 256, every 16, 128^3 cells:
-    256 + 2171 updates, 2.81e9 queries (80.4k per step)."""
-    cells = cfg.grid_res**3
-    warm = min(cfg.steps, cfg.grid_warmup)
-    steady = (cfg.steps - warm) // cfg.grid_every if cfg.grid_every > 0 else 0
-    return GridSchedule(warm, steady, cells, cells // 2)
+@functools.lru_cache(maxsize=256)
+def grid_updates(
+    steps: int, warmup: int, every: int, rule: GridRule = DEFAULT_GRID_RULE
+) -> tuple[int, int]:
+    """(updates before step ``warmup``, updates from it on) over ``steps`` optimizer steps.
+
+    "trainer" counts the steps :func:`dronecap.nerf.occupancy.due` says are due (the rule
+    lives there only; 10k steps, warm-up 256, every 16: 76 + 609); "fixed" counts
+    ``min(steps, warmup)`` warm-up updates and ``(steps - warmup) // every`` later ones (10k
+    steps, no warm-up, every 256: 0 + 39).
+    """
+    if rule == "fixed":
+        warm = min(steps, warmup)
+        return warm, (steps - warm) // every
+    from dronecap.nerf import occupancy  # torch comes with it: only when a schedule is counted
+
+    grid = occupancy.GridConfig(warmup=warmup, every=every)
+    due = [s for s in range(steps) if occupancy.due(grid, s)]
+    warm = sum(1 for s in due if s < warmup)
+    return warm, len(due) - warm
+
+
+def grid_schedule(
+    cfg: TrainConfig, hull_fraction: float = 1.0, rule: GridRule = DEFAULT_GRID_RULE
+) -> GridSchedule:
+    """The occupancy updates of ``cfg.steps`` steps by ``rule`` (:func:`grid_updates`): warm-up
+    updates query every cell of the visual hull (``hull_fraction`` of the ``grid_res^3``
+    cells; 1.0 without one), later ones a quarter of the hull uniformly plus as many occupied
+    cells (:func:`dronecap.nerf.occupancy.update`). Instant-NGP's 35k steps, warm-up 256,
+    every 16, 128^3 cells, no hull: 76 + 2172 updates, 2.44e9 queries (69.6k per step)."""
+    hull = round(hull_fraction * cfg.grid_res**3)
+    warm, steady = grid_updates(cfg.steps, cfg.grid_warmup, cfg.grid_every, rule)
+    return GridSchedule(warm, steady, hull, 2 * (hull // 4))

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass
 
 from dronecap.gap9 import arch
 from dronecap.gap9.energy import energy_report
@@ -31,6 +32,7 @@ from dronecap.nerf.config import TrainConfig
 
 __all__ = [
     "Platform",
+    "RunSamples",
     "cost_report",
     "federated_payload",
     "format_report",
@@ -41,6 +43,36 @@ __all__ = [
 
 def _platform(platform: Platform | None) -> Platform:
     return platform if platform is not None else load_platform()
+
+
+@dataclass(frozen=True)
+class RunSamples:
+    """What a trained run's steps worked on, as its ``metrics.json`` "samples" records them
+    (:meth:`dronecap.nerf.trainer.Trainer.sample_counts`), averaged over the run.
+
+    trained_fraction: samples trained on after compaction / samples marched (1.0: no
+    compaction); hull_fraction: share of the occupancy cells the visual hull allows (1.0: no
+    carved grid). The defaults cost a run as if neither existed.
+    """
+
+    trained_fraction: float = 1.0
+    hull_fraction: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("trained_fraction", "hull_fraction"):
+            value = getattr(self, name)
+            if not 0 < value <= 1:
+                raise ValueError(f"{name} must be in (0, 1], got {value}")
+
+    @classmethod
+    def from_metrics(cls, doc: dict) -> RunSamples:
+        """The fractions of a run's ``metrics.json`` document; a run written before they were
+        recorded (no "samples") gets the defaults: every marched sample trained, no hull."""
+        s = doc.get("samples")
+        if not s:
+            return cls()
+        marched = int(s["marched"])
+        return cls(int(s["trained"]) / marched if marched else 1.0, float(s["hull_fraction"]))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -162,17 +194,22 @@ def l3_resident(cfg: TrainConfig, p: Platform, n_images: int) -> dict[str, int]:
 # ---------------------------------------------------------------------------------------------
 
 
-def step_ops(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
-    """Ops of one optimizer step (Table II's Compute): forward and backward of ``B`` samples,
-    loss per ray, Adam, and the occupancy update amortised over the run's schedule."""
+def step_ops(
+    cfg: TrainConfig, p: Platform, spp: float, run: RunSamples, sched: arch.GridSchedule
+) -> dict[str, float]:
+    """Ops of one optimizer step (Table II's Compute): forward and backward of ``B`` marched
+    samples (with compaction: the pre-pass on all of them, the rest on ``run``'s trained
+    share, :func:`arch.kernel_shares`), loss per ray, Adam, and the occupancy updates of
+    ``sched`` amortised over the run's steps."""
     per = arch.ops_per_sample(cfg)
+    share = arch.kernel_shares(cfg, run.trained_fraction)
     c = arch.counts(cfg, p.hash_rows)
-    sched = arch.grid_schedule(cfg)
     occ_total = sched.total_queries * arch.density_query_ops(cfg)
     occ_total += sched.updates * c.grid_cells * arch.GRID_CELL_OPS
     out = {
-        "forward": cfg.batch_samples * sum(per["forward"].values()),
-        "backward": cfg.batch_samples * sum(per["backward"].values()),
+        pas: cfg.batch_samples * sum(share[pas][k] * v for k, v in per[pas].items())
+        for pas in ("forward", "backward")
+    } | {
         "loss": cfg.batch_samples / spp * arch.loss_ops_per_ray(cfg),
         "optimizer": arch.optimizer_ops(c, p.calibration.optimizer_ops_per_value),
         "occupancy_amortised": occ_total / max(cfg.steps, 1),
@@ -201,8 +238,10 @@ def occupancy_dma_bytes(cfg: TrainConfig, p: Platform, queries: int) -> int:
     return query_tiles * c.hash_params * n.param_bytes + grid
 
 
-def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
-    """L3 <-> L2 bytes per tile, per Adam step, per occupancy update.
+def l3_traffic(
+    cfg: TrainConfig, p: Platform, spp: float, sched: arch.GridSchedule
+) -> dict[str, float]:
+    """L3 <-> L2 bytes per tile, per Adam step, per occupancy update (``sched``'s).
 
     tile: hash params read (fp32) for the forward gather + hash gradients read and written
     (fp32 accumulation) in the backward, the same for the MLP and far-field weights (the
@@ -212,6 +251,10 @@ def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
     params once per tile of queries, the grid's EMA read and written, its flags written;
     ``occupancy_run`` every update of the run's schedule. render_frame: each forward tile of a
     rendered frame reads every parameter (fp32) and its rays' occupancy flags.
+
+    Compaction does not change a tile's bytes: the hash levels cross L3 level by level
+    whatever the number of samples gathering from or scattering into them, every ray still
+    tests its flags while marching and keeps its pixel.
     """
     n = p.numerics
     c = arch.counts(cfg, p.hash_rows)
@@ -229,7 +272,6 @@ def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
     adam = c.params * (
         n.param_bytes + 2 * n.grad_bytes + 2 * n.moment_bytes + n.param_bytes + 2 * n.moment_bytes
     )
-    sched = arch.grid_schedule(cfg)
     occupancy = occupancy_dma_bytes(cfg, p, sched.steady_queries)
     occupancy_run = sched.steady_updates * occupancy
     occupancy_run += sched.warmup_updates * occupancy_dma_bytes(cfg, p, sched.warmup_queries)
@@ -247,26 +289,31 @@ def l3_traffic(cfg: TrainConfig, p: Platform, spp: float) -> dict[str, float]:
     }
 
 
-def kernel_latency(cfg: TrainConfig, p: Platform) -> dict[str, dict[str, float]]:
+def kernel_latency(
+    cfg: TrainConfig, p: Platform, trained_fraction: float = 1.0
+) -> dict[str, dict[str, float]]:
     """Compute seconds per tile of each kernel, forward and backward (no DMA).
 
     hash: corners x cycles per corner; MLPs: ops / effective ops per cycle of the pass;
-    elementwise: ops / scalar FP ops per cycle.
+    elementwise: ops / scalar FP ops per cycle; each times its share of the tile's samples
+    when compaction trains on ``trained_fraction`` of them (:func:`arch.kernel_shares`).
     """
     cal, hz, tile = p.calibration, p.clock_hz, cfg.tile_samples
     per = arch.ops_per_sample(cfg)
+    share = arch.kernel_shares(cfg, trained_fraction)
     out: dict[str, dict[str, float]] = {}
     for pas, rate in (
         ("forward", cal.mlp_fwd_ops_per_cycle),
         ("backward", cal.mlp_bwd_ops_per_cycle),
     ):
         ops = per[pas]
-        out[pas] = {
+        full = {
             "hash": tile * arch.hash_corners_per_sample(cfg) * cal.hash_cycles_per_corner / hz,
             "density_mlp": tile * ops["density_mlp"] / rate / hz,
             "color_mlp": tile * ops["color_mlp"] / rate / hz,
             "elementwise": tile * ops["elementwise"] / cal.elementwise_ops_per_cycle / hz,
         }
+        out[pas] = {k: share[pas][k] * v for k, v in full.items()}
     return out
 
 
@@ -291,10 +338,14 @@ def occupancy_update_s(cfg: TrainConfig, p: Platform, queries: int) -> float:
     return max(compute, dma)
 
 
-def latency(cfg: TrainConfig, p: Platform, spp: float) -> dict:
-    """Per-kernel and per-step seconds, training time for ``cfg.steps`` and render time."""
-    kern = kernel_latency(cfg, p)
-    traffic = l3_traffic(cfg, p, spp)
+def latency(
+    cfg: TrainConfig, p: Platform, spp: float, run: RunSamples, sched: arch.GridSchedule
+) -> dict:
+    """Per-kernel and per-step seconds (``run``'s trained share, ``sched``'s occupancy
+    updates), training time for ``cfg.steps`` and the render time of a frame (forward tiles of
+    every sample: rendering has no compaction)."""
+    kern = kernel_latency(cfg, p, run.trained_fraction)
+    traffic = l3_traffic(cfg, p, spp, sched)
     fwd, bwd = sum(kern["forward"].values()), sum(kern["backward"].values())
     dma_tile = traffic["tile"]["total"] / p.l3_l2_bytes_per_s
     tile_s = max(fwd + bwd, dma_tile)
@@ -303,7 +354,6 @@ def latency(cfg: TrainConfig, p: Platform, spp: float) -> dict:
     adam_compute = adam_ops / p.calibration.elementwise_ops_per_cycle / p.clock_hz
     adam_dma = traffic["adam_step"] / p.l3_l2_bytes_per_s
     adam = max(adam_compute, adam_dma)
-    sched = arch.grid_schedule(cfg)
     occ_steady = occupancy_update_s(cfg, p, sched.steady_queries)
     occ_warm = occupancy_update_s(cfg, p, sched.warmup_queries)
     occ_run = sched.warmup_updates * occ_warm + sched.steady_updates * occ_steady
@@ -326,7 +376,7 @@ def latency(cfg: TrainConfig, p: Platform, spp: float) -> dict:
         "per_tile_amortised": step / tiles,
         "train": step * cfg.steps,
         "render_tiles": render_tiles,
-        "render_frame": render_tiles * fwd,
+        "render_frame": render_tiles * sum(kernel_latency(cfg, p)["forward"].values()),
     }
 
 
@@ -366,6 +416,8 @@ def cost_report(
     samples_per_pixel: float = 13.0,
     n_images: int | None = None,
     clients: int = 4,
+    run: RunSamples | None = None,
+    grid_rule: arch.GridRule = arch.DEFAULT_GRID_RULE,
 ) -> dict:
     """The whole cost of ``cfg`` on ``platform`` (default GAP9) as a JSON-able nested dict.
 
@@ -376,6 +428,10 @@ def cost_report(
             rays per tile and the render cost.
         n_images: training images the drone stores in L3 (default ``cfg.train_images``).
         clients: drones of a federated round (for the per-round link time).
+        run: what the run's steps worked on (compaction's trained share, the visual hull's
+            share of the grid); default :class:`RunSamples` (neither).
+        grid_rule: when the grid is updated (:data:`arch.GridRule`): the trainer's rule, or
+            "fixed" (the paper's GAP9 run).
     Returns:
         {"config", "platform", "counts", "memory", "ops", "latency", "l3_traffic", "energy",
         "link", "verdicts"}; bytes, ops, seconds, joules.
@@ -391,10 +447,12 @@ def cost_report(
     l1 = l1_peak(cfg, p)
     l3 = l3_resident(cfg, p, n_img)
     total = total_memory(cfg, p)
-    ops = step_ops(cfg, p, spp)
+    run = run if run is not None else RunSamples()
+    sched = arch.grid_schedule(cfg, run.hull_fraction, grid_rule)
+    ops = step_ops(cfg, p, spp, run, sched)
     per = arch.ops_per_sample(cfg)
-    lat = latency(cfg, p, spp)
-    traffic = l3_traffic(cfg, p, spp)
+    lat = latency(cfg, p, spp, run, sched)
+    traffic = l3_traffic(cfg, p, spp, sched)
     verdicts = {
         "l1": {"need": l1["bytes"] + p.l1_reserved_bytes, "have": p.l1_bytes},
         "l2": {"need": phases[l2_phase], "have": p.l2_bytes},
@@ -406,7 +464,14 @@ def cost_report(
     return {
         "config": {k: getattr(cfg, k) for k in _CONFIG_FIELDS},
         "platform": p.name,
-        "assumptions": {"samples_per_pixel": spp, "n_images": n_img, "hash_rows": p.hash_rows},
+        "assumptions": {
+            "samples_per_pixel": spp,
+            "n_images": n_img,
+            "hash_rows": p.hash_rows,
+            **dataclasses.asdict(run),
+            "grid_rule": grid_rule,
+            "grid_updates": {"warmup": sched.warmup_updates, "steady": sched.steady_updates},
+        },
         "counts": {
             **dataclasses.asdict(c),
             "mlp_params": c.mlp_params,

@@ -7,11 +7,12 @@ and :func:`calibrate` fits the latency model's constants on them.
 
 How the rows are evaluated (see docs/gap9.md for the evidence):
 
-- Table II's configurations are Instant-NGP runs: the occupancy update is amortised over
-  Instant-NGP's schedule of :data:`TABLE2_STEPS` steps (256 warm-up steps on every cell, then
-  every 16 steps on half of them);
+- Table II's configurations are Instant-NGP runs of their presets' own steps (10k for the
+  160-px rows, 35k for Instant-NGP's): the occupancy update is amortised over Instant-NGP's
+  schedule, which is the trainer's (grid rule "trainer": the interval grows as
+  ``clamp(step // 16, 1, 16)``, every cell before step 256, half of them later);
 - the Deployment figures are the tiny-dronerf preset trained on GAP9 with an occupancy update
-  every 256 steps and no warm-up (:func:`deployment_config`).
+  every 256 steps and no warm-up (:func:`deployment_config`, grid rule "fixed").
 """
 
 from __future__ import annotations
@@ -24,8 +25,6 @@ from dronecap.gap9 import arch
 from dronecap.gap9.model import cost_report, federated_payload, link_time_s
 from dronecap.gap9.platform import Calibration, Platform
 from dronecap.nerf.config import TABLE2_ROWS, TrainConfig, preset
-
-TABLE2_STEPS = 35_000  # Instant-NGP's training schedule, over which Table II amortises the grid
 
 # name -> (Mem MB, Compute GOp/step, PSNR dB), in TABLE2_ROWS order.
 TABLE2: dict[str, tuple[float, float, float]] = {
@@ -71,13 +70,12 @@ DEPLOYMENT: dict[str, tuple[float, str]] = {
 NOT_REPRODUCIBLE = {"per_tile_amortised", "train_10k"}
 
 
-def table2_config(name: str) -> TrainConfig:
-    """A Table II row's preset on Instant-NGP's schedule (:data:`TABLE2_STEPS` steps)."""
-    return preset(name).replace(steps=TABLE2_STEPS)
+DEPLOYMENT_GRID_RULE: arch.GridRule = "fixed"  # "every 256 steps", as the paper states it
 
 
 def deployment_config() -> TrainConfig:
-    """tiny-dronerf as the paper ran it on GAP9: grid update every 256 steps, no warm-up."""
+    """tiny-dronerf as the paper ran it on GAP9: grid update every 256 steps, no warm-up (cost
+    it with ``grid_rule=DEPLOYMENT_GRID_RULE``)."""
     return preset("tiny-dronerf").replace(grid_every=256, grid_warmup=0)
 
 
@@ -94,7 +92,7 @@ def table2(platform: Platform | None = None) -> list[dict]:
     (``mem_err_rounding``: beyond the paper's whole-MB rounding)."""
     rows = []
     for name, (mem, gop, psnr) in TABLE2.items():
-        rep = cost_report(table2_config(name), platform)
+        rep = cost_report(preset(name), platform)
         m = rep["memory"]["untiled"]["total"] / 1e6
         g = rep["ops"]["step"]["total"] / 1e9
         rows.append({
@@ -109,7 +107,7 @@ def table2(platform: Platform | None = None) -> list[dict]:
 def deployment(platform: Platform | None = None) -> list[dict]:
     """Each Deployment/Federated figure: name, paper value, model value, unit, rel. error."""
     cfg = deployment_config()
-    rep = cost_report(cfg, platform)
+    rep = cost_report(cfg, platform, grid_rule=DEPLOYMENT_GRID_RULE)
     lat, link = rep["latency"], rep["link"]
     model = {
         "forward_tile": lat["forward_tile"],
@@ -209,7 +207,7 @@ def fit_optimizer_ops(platform: Platform) -> float:
     )
     a, b = [], []
     for name, (_, gop, _) in TABLE2.items():
-        cfg = table2_config(name)
+        cfg = preset(name)
         rest = cost_report(cfg, no_opt)["ops"]["step"]["total"]
         a.append(arch.counts(cfg, platform.hash_rows).params / (gop * 1e9))
         b.append(1 - rest / (gop * 1e9))

@@ -52,6 +52,7 @@ def format_report(report: dict) -> str:
     rows.append(("L3 resident", format_bytes(mem["l3"]["total"])))
     rows.append(("largest tile in L2", str(mem["largest_tile_in_l2"])))
     section("operations")
+    rows.append(("trained / marched samples", f"{r['assumptions']['trained_fraction']:.2f}"))
     for k, v in r["ops"]["step"].items():
         rows.append((f"{k} / step", f"{v / 1e9:.3f} GOp"))
     rows.append(("per rendered frame", f"{r['ops']['frame'] / 1e9:.2f} GOp"))
@@ -67,6 +68,13 @@ def format_report(report: dict) -> str:
     )
     rows.append(("Adam / step", f"{_s(lat['adam_step'])} ({lat['adam_bound']} bound)"))
     rows.append(("occupancy update", _s(lat["occupancy_update"])))
+    a = r["assumptions"]
+    rows.append((
+        "occupancy updates of the run",
+        f"{a['grid_updates']['warmup']} warm-up + {a['grid_updates']['steady']} later "
+        f"({a['grid_rule']} rule, hull {a['hull_fraction']:.0%} of the cells): "
+        f"{_s(lat['occupancy_run'])}",
+    ))  # fmt: skip
     rows.append(
         ("step / amortised per tile", f"{_s(lat['step'])} / {_s(lat['per_tile_amortised'])}")
     )

@@ -18,7 +18,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from dronecap.gap9.model import cost_report, deployed
+from dronecap.gap9.arch import DEFAULT_GRID_RULE, GridRule
+from dronecap.gap9.model import RunSamples, cost_report, deployed
 from dronecap.gap9.platform import Platform
 from dronecap.nerf.config import TrainConfig, config_from_dict, preset
 from dronecap.plots import pyplot, save_png
@@ -89,7 +90,8 @@ class Point:
     """One measured (or published) configuration on the Pareto plot.
 
     ``curve``: (step, held-out PSNR dB) pairs of the run's checks, in step order; ``psnr`` is
-    the final test PSNR after ``cfg.steps`` steps."""
+    the final test PSNR after ``cfg.steps`` steps; ``run``: what its steps worked on (its
+    metrics' "samples"; the defaults for published rows and runs that predate them)."""
 
     label: str
     cfg: TrainConfig
@@ -97,6 +99,7 @@ class Point:
     mem_mb: float = 0.0
     fits: bool = True
     curve: list[tuple[int, float]] = dataclasses.field(default_factory=list)
+    run: RunSamples = dataclasses.field(default_factory=RunSamples)
 
     def steps_to(self, target_db: float) -> int | None:
         """The first step at which the run reached ``target_db``: its first held-out check at
@@ -109,7 +112,8 @@ class Point:
 
 def load_runs(paths: list[str | Path]) -> list[Point]:
     """Points from ``metrics.json`` files with a "psnr" (top level, or under "test" as
-    ``dronecap train`` writes it) and a "config" dict (a run's resolved configuration).
+    ``dronecap train`` writes it) and a "config" dict (a run's resolved configuration), and
+    the run's "samples" when it recorded them (:meth:`RunSamples.from_metrics`).
 
     Raises ValueError naming a file that is unreadable or lacks those keys.
     """
@@ -120,12 +124,14 @@ def load_runs(paths: list[str | Path]) -> list[Point]:
             doc = json.loads(p.read_text())
             test = doc.get("test") or {}  # a trainer's metrics.json: scores under "test"
             psnr, cfg_d = float(doc["psnr"] if "psnr" in doc else test["psnr"]), doc["config"]
+            run = RunSamples.from_metrics(doc)
         except (OSError, ValueError, KeyError, TypeError) as err:
             raise ValueError(f"{p}: not a metrics.json with 'psnr' and 'config' ({err})") from err
         if not math.isfinite(psnr) or not isinstance(cfg_d, dict):
             raise ValueError(f"{p}: 'psnr' must be a finite number and 'config' a dict")
         curve = [(int(c["step"]), float(c["psnr"])) for c in doc.get("curve") or []]
-        points.append(Point(p.parent.name or str(p), config_from_dict(cfg_d), psnr, curve=curve))
+        label = p.parent.name or str(p)
+        points.append(Point(label, config_from_dict(cfg_d), psnr, curve=curve, run=run))
     return points
 
 
@@ -145,21 +151,30 @@ def evaluate(points: list[Point], budget: Budget, platform: Platform | None = No
 
 
 def to_target(
-    points: list[Point], target_db: float, platform: Platform | None = None
+    points: list[Point],
+    target_db: float,
+    platform: Platform | None = None,
+    grid_rule: GridRule = DEFAULT_GRID_RULE,
 ) -> list[dict]:
     """The modelled GAP9 cost of each point's run up to ``target_db``, cheapest energy first.
 
     Each point is costed in GAP9 tiles (:func:`deployed`) for the steps it took to reach the
-    target (:meth:`Point.steps_to`); points that never reached it come last, with None.
-    Returns dicts: label, steps, ``joules``, ``minutes`` (GAP9 training time), mem_mb.
+    target (:meth:`Point.steps_to`), with its run's trained and hull fractions (averaged over
+    all its steps) and its grid updated by ``grid_rule``; points that never reached it come
+    last, with None.
+    Returns dicts: label, steps, ``joules``, ``minutes`` (GAP9 training time), mem_mb,
+    ``trained`` and ``hull`` (the run's fractions, :class:`RunSamples`).
     """
     rows = []
     for pt in points:
         steps = pt.steps_to(target_db)
         row = {"label": pt.label, "steps": steps, "mem_mb": pt.mem_mb, "joules": None,
-               "minutes": None}  # fmt: skip
+               "minutes": None, "trained": pt.run.trained_fraction,
+               "hull": pt.run.hull_fraction}  # fmt: skip
         if steps is not None:
-            rep = cost_report(deployed(pt.cfg.replace(steps=steps)), platform)
+            rep = cost_report(
+                deployed(pt.cfg.replace(steps=steps)), platform, run=pt.run, grid_rule=grid_rule
+            )
             row |= {"joules": rep["energy"]["run"], "minutes": rep["latency"]["train"] / 60}
         rows.append(row)
     return sorted(rows, key=lambda r: (r["joules"] is None, r["joules"] or 0.0))

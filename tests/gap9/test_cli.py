@@ -238,3 +238,32 @@ def test_search_ranks_runs_by_energy_to_a_psnr(tmp_path, capsys):
     # same model: energy grows with the steps (the warm-up is paid by both)
     assert float(fast[3]) < float(slow[3])
     assert "never reached" in out and "SoC power: 60 mW" in out and "ASSUMPTION" in out
+
+
+def test_run_dir_cost_uses_the_runs_samples(tmp_path):
+    cfg = preset("scene-sized").replace(n_max=223, log2_hashmap=14, grid_res=64)
+    _run_json(tmp_path / "run", cfg)
+    assert main(["cost", str(tmp_path / "run")]) == 0  # still training: no metrics.json yet
+    before = json.loads((tmp_path / "run" / "cost.json").read_text())
+    samples = {"marched": 1000, "trained": 430, "hull_fraction": 0.389}
+    (tmp_path / "run" / "metrics.json").write_text(json.dumps({"samples": samples}))
+    assert main(["cost", str(tmp_path / "run")]) == 0
+    after = json.loads((tmp_path / "run" / "cost.json").read_text())
+    assert before["assumptions"]["trained_fraction"] == 1.0
+    assert after["assumptions"]["trained_fraction"] == pytest.approx(0.43)
+    assert after["assumptions"]["hull_fraction"] == pytest.approx(0.389)
+    assert after["latency"]["train"] < before["latency"]["train"]
+
+
+def test_grid_rule_option_costs_the_papers_fixed_schedule(tmp_path):
+    """The paper's run (every 256 steps, no warm-up) as flown: 39 updates in 10k steps; the
+    trainer's rule on the same settings updates every step at first (340 updates)."""
+    sets = ["--preset", "tiny-dronerf", "--set", "grid_every=256", "--set", "grid_warmup=0"]
+    reps = {}
+    for rule in ("fixed", "trainer"):
+        out = tmp_path / f"{rule}.json"
+        assert main(["cost", *sets, "--grid-rule", rule, "--json", str(out)]) == 0
+        reps[rule] = json.loads(out.read_text())
+    assert reps["fixed"]["assumptions"]["grid_updates"] == {"warmup": 0, "steady": 39}
+    assert reps["trainer"]["assumptions"]["grid_updates"] == {"warmup": 0, "steady": 340}
+    assert reps["fixed"]["latency"]["train"] < reps["trainer"]["latency"]["train"]
