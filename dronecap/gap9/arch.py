@@ -20,6 +20,8 @@ from typing import Literal, get_args
 from dronecap.gap9.platform import Numerics
 from dronecap.nerf import levels
 from dronecap.nerf.config import FAR_GRID_COLS, FAR_GRID_ROWS, FAR_SH_DEGREE, TrainConfig
+from dronecap.nerf.grid_schedule import GridConfig
+from dronecap.nerf.grid_schedule import due as grid_due
 
 # --- multiresolution hash encoding, per level and per cell corner ----------------------------
 HASH_LEVEL_OPS = 12  # scale x by res (3 mul), floor (3), fraction (3 sub), 1 - fraction (3 sub)
@@ -331,7 +333,7 @@ def density_query_ops(cfg: TrainConfig) -> int:
 
 GridRule = Literal["trainer", "fixed"]
 """When the occupancy grid is updated: "trainer" is the trainer's own rule
-(:func:`dronecap.nerf.occupancy.due`, Instant-NGP's: the interval grows as
+(:func:`dronecap.nerf.grid_schedule.due`, Instant-NGP's: the interval grows as
 ``clamp(step // 16, 1, grid_every)``); "fixed" is the paper's GAP9 run as it states it, every
 step for ``grid_warmup`` steps, then every ``grid_every`` steps."""
 GRID_RULES: tuple[GridRule, ...] = get_args(GridRule)
@@ -364,7 +366,7 @@ def grid_updates(
 ) -> tuple[int, int]:
     """(updates before step ``warmup``, updates from it on) over ``steps`` optimizer steps.
 
-    "trainer" counts the steps :func:`dronecap.nerf.occupancy.due` says are due (the rule
+    "trainer" counts the steps :func:`dronecap.nerf.grid_schedule.due` says are due (the rule
     lives there only; 10k steps, warm-up 256, every 16: 76 + 609); "fixed" counts
     ``min(steps, warmup)`` warm-up updates and ``(steps - warmup) // every`` later ones (10k
     steps, no warm-up, every 256: 0 + 39).
@@ -372,10 +374,8 @@ def grid_updates(
     if rule == "fixed":
         warm = min(steps, warmup)
         return warm, (steps - warm) // every
-    from dronecap.nerf import occupancy  # torch comes with it: only when a schedule is counted
-
-    grid = occupancy.GridConfig(warmup=warmup, every=every)
-    due = [s for s in range(steps) if occupancy.due(grid, s)]
+    grid = GridConfig(warmup=warmup, every=every)
+    due = [s for s in range(steps) if grid_due(grid, s)]
     warm = sum(1 for s in due if s < warmup)
     return warm, len(due) - warm
 

@@ -15,19 +15,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .grid_schedule import GridConfig, due
+
+__all__ = ["GridConfig", "GridState", "due", "update"]  # the schedule lives in grid_schedule
+
 DensityFn = Callable[[Tensor], Tensor]  # points [N, 3] -> sigma [N]
-
-
-@dataclass
-class GridConfig:
-    """Occupancy-grid settings (from TrainConfig's grid_* fields)."""
-
-    res: int = 128  # cells per axis
-    decay: float = 0.95  # EMA decay per update
-    threshold: float = 0.01  # optical-thickness threshold of an occupied cell
-    warmup: int = 256  # steps during which all cells are updated every step
-    every: int = 16  # steps between updates after warm-up
-    chunk: int = 1 << 16  # points per density evaluation
 
 
 @dataclass
@@ -53,15 +45,6 @@ def init_state(cfg: GridConfig, device: str | torch.device = "cpu") -> GridState
     """Fresh grid: zero density, every cell occupied (nothing is skipped before training)."""
     n = cfg.res**3
     return GridState(torch.zeros(n, device=device), torch.ones(n, dtype=torch.bool, device=device))
-
-
-def due(cfg: GridConfig, step: int) -> bool:
-    """Whether the grid is updated before optimizer step ``step`` (0-based).
-
-    As Instant-NGP: the interval grows as ``clamp(step // 16, 1, every)``, so the first 32
-    steps update every step and the interval reaches ``every`` after ``16 * every`` steps.
-    """
-    return step % min(max(step // 16, 1), max(cfg.every, 1)) == 0
 
 
 def cell_index(points: Tensor, aabb: Tensor, res: int) -> Tensor:

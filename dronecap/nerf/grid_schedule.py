@@ -1,0 +1,29 @@
+"""When the occupancy grid is updated, and its settings: torch-free, so that the GAP9 cost model
+(:mod:`dronecap.gap9.arch`) counts the trainer's own schedule without importing torch.
+:mod:`.occupancy` holds the grid itself and re-exports these.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class GridConfig:
+    """Occupancy-grid settings (from TrainConfig's grid_* fields)."""
+
+    res: int = 128  # cells per axis
+    decay: float = 0.95  # EMA decay per update
+    threshold: float = 0.01  # optical-thickness threshold of an occupied cell
+    warmup: int = 256  # steps during which all cells are updated every step
+    every: int = 16  # steps between updates after warm-up
+    chunk: int = 1 << 16  # points per density evaluation
+
+
+def due(cfg: GridConfig, step: int) -> bool:
+    """Whether the grid is updated before optimizer step ``step`` (0-based).
+
+    As Instant-NGP: the interval grows as ``clamp(step // 16, 1, every)``, so the first 32
+    steps update every step and the interval reaches ``every`` after ``16 * every`` steps.
+    """
+    return step % min(max(step // 16, 1), max(cfg.every, 1)) == 0
