@@ -72,7 +72,6 @@ def _cli_default() -> dict:
         "server_lr",
         "server_momentum",
         "table_step",
-        "round_lr",
     )
     return dict(visibility=not d.plain_average, **{n: getattr(d, n) for n in names})
 
@@ -87,11 +86,6 @@ VARIANTS: dict[str, dict] = {  # in the order they run: the reference first
     "q4 r3 vis M d10": dict(**SPARSE_UP, visibility=True, down_rows=0.10, **SERVER_STEP),
     "q4 r3 M": dict(**SPARSE_UP, **SERVER_STEP),
     "fp16": dict(quant_bits=0),
-    # the rounds' lr (``round_lr``): continuing the whole-budget schedule (0), or their own
-    # decay from 0.3 or 1 x the trainer's lr
-    "rounds lr cont": {**DEFAULT, "round_lr": 0.0},
-    "rounds lr 0.3": {**DEFAULT, "round_lr": 0.3},
-    "rounds lr 1": {**DEFAULT, "round_lr": 1.0},
 }
 REFERENCE = "fp16 default"
 

@@ -91,14 +91,6 @@ class Settings(Base):
         "change), or the FedAvgM server step as the MLPs (default mean: +0.86 dB on a swarm's "
         "drone shards, benchmarks/results/federated_swarm.md)",
     )
-    round_lr: float = setting(
-        0.0,
-        minimum=0.0,
-        maximum=1.0,
-        help="the rounds' learning rate starts at this fraction of the trainer's lr and decays "
-        "to its final lr over the rounds; 0: the rounds continue the coordinator's schedule, "
-        "which spans N_pt + R N_l (default 0)",
-    )
     baselines: bool = setting(
         False, help="also train centralized and single-drone baselines on the same step budget"
     )
@@ -174,7 +166,6 @@ def run(args: Settings) -> int:
         **{name: getattr(args, name) for name in same_name},  # the run's options, by name
         visibility=not args.plain_average,
     )
-    s.round_schedule(1)  # an impossible --round-lr is refused before any drone trains
     if (out / fed.SETTINGS).exists() and (old := fed.load_settings(out)) != s:
         what = "settings"
         if not old.shard_sha256 and dataclasses.replace(old, shard_sha256=s.shard_sha256) == s:

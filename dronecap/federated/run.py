@@ -139,8 +139,8 @@ def _local_round(msg: Message, context: Context, pretrain: bool) -> Message:
     received = {} if pretrain else receive(msg.content, folder, r)
     if not pretrain:
         install_global(trainer, received, rebuild=prev < 0)
-        trainer.step, lr_steps = s.round_schedule(r)  # the round's place in the lr schedule
-        trainer.plan(lr_steps)
+        if prev < 0:
+            trainer.step = s.pretrain  # join the coordinator's learning-rate schedule
     t0 = time.perf_counter()
     trainer.train(s.pretrain if pretrain else s.local_steps)
     train_s = time.perf_counter() - t0

@@ -50,9 +50,6 @@ class FedSettings:
     server_lr: float = 1.0  # FedAvgM server step size (1 with momentum 0: plain FedAvg)
     server_momentum: float = 0.0  # FedAvgM server momentum
     table_step: str = "server"  # hash table: "server" step like the MLPs, or "mean" (lr 1)
-    round_lr: float = 0.0  # the rounds' lr starts at this fraction of cfg lr and decays to the
-    # final lr over the rounds (round_schedule); 0 = runs from before the setting (session 15):
-    # the rounds continue the coordinator's schedule; new runs take `dronecap federate`'s default
     eval_views: int = 0  # test views for the per-round PSNR (0: all)
     round_timeout: float = 3600.0  # seconds the server waits for a round's replies
     fail_client: int = -1  # fault injection: this partition (EVERY_CLIENT: all) raises ...
@@ -74,27 +71,6 @@ class FedSettings:
     def total_steps(self) -> int:
         """Steps on the coordinator's critical path: N_pt + R * N_l (the step budget)."""
         return self.pretrain + self.rounds * self.local_steps
-
-    def round_schedule(self, r: int) -> tuple[int, int]:
-        """``(step, lr_steps)``: the step counter a drone starts round ``r`` (1..R) at and the
-        step count its exponential lr decay runs to (``Trainer.plan``); the trainer's lr is
-        ``lr * lr_final_ratio ** (step / lr_steps)``.
-
-        ``round_lr`` 0: the rounds continue the coordinator's schedule, which spans the whole
-        budget (round ``r`` starts at step ``N_pt + (r - 1) N_l`` of ``N_pt + R N_l``).
-        ``round_lr`` F in (``lr_final_ratio``, 1]: the rounds have a schedule of their own,
-        from F x lr at round 1's first step down to the final lr after round R (the
-        coordinator's pretraining keeps the whole-budget one). Raises InputError for an F at
-        or below the final ratio (a schedule that would rise)."""
-        first = (r - 1) * self.local_steps
-        if not self.round_lr:
-            return self.pretrain + first, self.total_steps
-        ratio = float(self.cfg["lr_final_ratio"])
-        if not ratio < self.round_lr <= 1.0:
-            raise InputError(f"round_lr {self.round_lr} must be in ({ratio}, 1] (lr_final_ratio)")
-        a = np.log(self.round_lr) / np.log(ratio)  # the fraction of the decay already done
-        lr_steps = self.rounds * self.local_steps / (1.0 - a)
-        return int(round(a * lr_steps)) + first, int(round(lr_steps))
 
     def train_config(self) -> TrainConfig:
         """The trainer configuration (its schedule spans the whole step budget)."""
