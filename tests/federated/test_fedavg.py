@@ -197,7 +197,8 @@ def test_rebuilt_grid_hides_less_than_one_probe_per_cell(cube_rgb):
     tr.train(600)
     pose, k = cube_rgb.poses[1], cube_rgb.intrinsics
     trained = tr.grid
-    tr.grid = occupancy.init_state(tr.grid_cfg)  # every cell occupied: nothing skipped
+    # every cell of the visual hull occupied: nothing the model may render there is skipped
+    tr.grid = occupancy.restrict(occupancy.init_state(tr.grid_cfg), trained.allowed)
     full = tr.render(pose, k)
     tr.grid = trained
     kept = float(abs(tr.render(pose, k) - full).mean())
@@ -211,6 +212,25 @@ def test_rebuilt_grid_hides_less_than_one_probe_per_cell(cube_rgb):
     once, many = error(1), error(16)
     assert many < 0.8 * once
     assert many < 1.1 * kept
+
+
+def test_rebuilt_grid_stays_inside_the_trainers_visual_hull(cube_rgb):
+    """A rebuilt grid keeps the cells the trainer may ever occupy (its views' visual hull):
+    none outside them is occupied, whatever the model's densities there."""
+    import torch
+
+    from dronecap.federated.run import rebuild_grid
+    from dronecap.nerf import occupancy
+    from dronecap.nerf.trainer import Trainer
+
+    tr = Trainer(preset("test").replace(grid_res=16, steps=100), cube_rgb)
+    tr.train(100)
+    res = tr.grid_cfg.res
+    hull = torch.arange(res**3) // (res * res) < res // 2  # cells of the lower half in x
+    tr.grid = occupancy.restrict(tr.grid, hull)
+    rebuild_grid(tr)
+    assert tr.grid.allowed is not None and torch.equal(tr.grid.allowed, hull)
+    assert tr.grid.occupied[hull].any() and not tr.grid.occupied[~hull].any()
 
 
 def _replies(updates: list[dict[str, np.ndarray]], counts: list[int]) -> list[Message]:
