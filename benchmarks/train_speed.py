@@ -104,7 +104,8 @@ def measure_steps(args: argparse.Namespace) -> None:
         samples = float(np.mean([lg["samples"] for lg in logs]))
         rays = float(np.mean([lg["rays"] for lg in logs]))
         row = dict(threads=threads, cpu_ms=float(np.median(cpu)), wall_ms=float(np.median(wall)),
-                   samples=samples, per_ray=samples / rays)  # fmt: skip
+                   samples=samples, per_ray=samples / rays,
+                   code=str(Path(sys.modules["dronecap"].__file__).parent))  # fmt: skip
         print(ROW + json.dumps(row), flush=True)
 
 
@@ -119,7 +120,11 @@ def run_variant(args: argparse.Namespace, extra: list[str], env: dict[str, str])
                        cwd=args.cache)  # fmt: skip
     if p.returncode != 0:
         raise SystemExit(f"variant {extra} {env} failed: {p.stderr.strip()[-400:]}")
-    return [json.loads(line[len(ROW) :]) for line in p.stdout.splitlines() if line.startswith(ROW)]
+    rows = [json.loads(line[len(ROW) :]) for line in p.stdout.splitlines() if line.startswith(ROW)]
+    want = env.get("PYTHONPATH")  # an editable install must not shadow the code asked for
+    if want and not all(r["code"].startswith(want) for r in rows):
+        raise SystemExit(f"variant {env} imported dronecap from {rows[0]['code']}, not {want}")
+    return rows
 
 
 def render_rows(args: argparse.Namespace, name: str, ds) -> list[tuple[str, str, str, str]]:
@@ -197,7 +202,7 @@ def main() -> None:
         "this": ("this commit", [], {}),
         "fp32": ("this commit, fp32 MLP products", ["--mlp-dtype", "fp32"], {}),
         "nosimd": ("this commit, kernels without SIMD", [], {"DRONECAP_NO_SIMD": "1"}),
-        "previous": (f"previous code ({args.previous})", [], {"PYTHONPATH": str(old / "pkg")}),
+        "previous": (f"previous code ({args.previous})", [], {"PYTHONPATH": str(old)}),
         "torch": ("PyTorch reference path", ["--backend", "torch"], {}),
         "paper": ("paper preset (tiny-dronerf), this commit", ["--preset", "tiny-dronerf"], {}),
     }
