@@ -391,3 +391,13 @@ def grid_schedule(
     hull = round(hull_fraction * cfg.grid_res**3)
     warm, steady = grid_updates(cfg.steps, cfg.grid_warmup, cfg.grid_every, rule)
     return GridSchedule(warm, steady, hull, 2 * (hull // 4))
+
+
+def rays_per_tile(cfg: TrainConfig, spp: float) -> float:
+    """Rays whose samples fill one tile, at ``spp`` samples per ray on average."""
+    return cfg.tile_samples / spp
+
+
+def frame_samples(cfg: TrainConfig, spp: float) -> float:
+    """Samples of one rendered ``resolution^2`` frame at ``spp`` samples per pixel."""
+    return cfg.resolution**2 * spp

@@ -17,6 +17,23 @@ def _j(joules: float) -> str:
     return f"{joules:.3g} J" if joules >= 1 else f"{joules * 1e3:.3g} mJ"
 
 
+def _config_rows(r: dict) -> list[tuple[str, str]]:
+    """The report's configuration rows: batch and table, images, parameters."""
+    cfg, counts = r["config"], r["counts"]
+    rows = [
+        ("B / tile / log2 T / L x F",
+         f"{cfg['batch_samples']} / {cfg['tile_samples']} / {cfg['log2_hashmap']} / "
+         f"{cfg['levels']} x {cfg['features']}"),
+        ("images/step, resolution", f"{cfg['images_per_step']}, {cfg['resolution']} px"),
+    ]  # fmt: skip
+    far = counts.get("far_field_params", 0)
+    params = f"{counts['hash_params']} + {counts['mlp_params']}"
+    if far:  # a far field (nerf.far_field): its kind and values
+        label = f"params (hash + MLP + far field {cfg.get('far_field')})"
+        return [*rows, (label, f"{params} + {far}")]
+    return [*rows, ("params (hash + MLP)", params)]
+
+
 def format_report(report: dict) -> str:
     """A readable multi-section table of a :func:`cost_report` dict."""
     r, cfg, mem, lat = report, report["config"], report["memory"], report["latency"]
@@ -26,20 +43,7 @@ def format_report(report: dict) -> str:
         rows.append((f"-- {title}", ""))
 
     section(f"configuration on {r['platform']}")
-    rows.append((
-        "B / tile / log2 T / L x F",
-        f"{cfg['batch_samples']} / {cfg['tile_samples']} / {cfg['log2_hashmap']} / "
-        f"{cfg['levels']} x {cfg['features']}",
-    ))  # fmt: skip
-    rows.append(("images/step, resolution", f"{cfg['images_per_step']}, {cfg['resolution']} px"))
-    counts, far = r["counts"], r["counts"].get("far_field_params", 0)
-    params = f"{counts['hash_params']} + {counts['mlp_params']}"
-    if far:  # a far field (nerf.far_field): its kind and values
-        rows.append(
-            (f"params (hash + MLP + far field {cfg.get('far_field')})", f"{params} + {far}")
-        )
-    else:
-        rows.append(("params (hash + MLP)", params))
+    rows.extend(_config_rows(r))
     section("memory (untiled, Table II accounting)")
     for k, v in mem["untiled"].items():
         rows.append((k, format_bytes(v)))

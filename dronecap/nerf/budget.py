@@ -26,6 +26,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dronecap.errors import InputError
+
+from .config import TrainConfig
+
 REPLAN_FRACTION = 0.05  # re-plan the step count every 5 % of the time budget
 CHECK_FRACTION = 0.1  # a held-out check every 10 % of the planned steps (10 curve points)
 RECENT_STEPS = 200  # step times the plan is made from (the latest ones)
@@ -182,3 +186,13 @@ def record_check(
                 f"(< {cfg.plateau_db:g} dB)"
             )
     return state.stop_reason
+
+
+def learning_rate(cfg: TrainConfig, step: int, lr_steps: int) -> float:
+    """The model's learning rate at ``step`` of a run whose decay spans ``lr_steps`` steps
+    (a time budget re-plans ``lr_steps``)."""
+    if cfg.lr_schedule == "constant":
+        return cfg.lr
+    if cfg.lr_schedule == "exp":
+        return cfg.lr * cfg.lr_final_ratio ** min(step / max(lr_steps, 1), 1.0)
+    raise InputError(f"unknown lr_schedule {cfg.lr_schedule!r}: use 'exp' or 'constant'")

@@ -15,6 +15,8 @@ and every :data:`PROBE_EVERY` steps to measure again.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from .field import Field
@@ -60,3 +62,30 @@ def visible(
     ri = ri[keep]
     counts = torch.bincount(ri, minlength=s.counts.numel())
     return Samples(ri, s.t_starts[keep], s.t_ends[keep], counts, encoded=encoded[keep])
+
+
+@dataclass
+class Tally:
+    """A run's compaction: samples marched and trained on over the run, and the share the last
+    pre-pass dropped (1.0 before any, so the first step measures)."""
+
+    marched: int = 0
+    trained: int = 0
+    dropped: float = 1.0
+
+    def compact(self, step: int, s: Samples, origins, dirs, field: Field, thresh: float) -> Samples:
+        """The samples of step ``step`` to train on: :func:`visible` ones when :func:`due`
+        (``thresh`` > 0), else ``s``; counted."""
+        kept = s
+        if thresh > 0 and due(step, self.dropped):
+            kept = visible(s, origins, dirs, field, thresh)
+            self.dropped = 1.0 - kept.n / max(s.n, 1)
+        self.marched += s.n
+        self.trained += kept.n
+        return kept
+
+    def counts(self, allowed: torch.Tensor | None) -> dict[str, float]:
+        """{"marched", "trained"}: samples over the run; "hull_fraction": the share of the
+        occupancy cells ``allowed`` (the visual hull; None: 1.0)."""
+        hull = 1.0 if allowed is None else float(allowed.float().mean())
+        return {"marched": self.marched, "trained": self.trained, "hull_fraction": hull}

@@ -26,7 +26,7 @@ from dronecap.camera import Camera
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
-from . import carve, compaction, occupancy
+from . import budget, carve, compaction, occupancy
 from .batch import RayBatch, draw_rays, whole_rays
 from .checkpoint import checkpoint_resolved, read_checkpoint, write_checkpoint
 from .config import TrainConfig
@@ -36,7 +36,7 @@ from .march_kernel import march_function
 from .marching import Samples, tiles
 from .photometric import Photometric
 from .rays import frame_cameras, ray_aabb
-from .render import Volume, render_rays, render_view
+from .render import Volume, render_view
 from .resolve import Resolved, resolve, training_frames
 from .volrend import distortion, render_packed
 
@@ -109,10 +109,7 @@ class Trainer:
         )
         self.grid = occupancy.init_state(self.grid_cfg, self.device)
         self.step, self.train_seconds = 0, 0.0
-        # samples marched (at most B per step) and trained on after compaction, over the run:
-        # what the GAP9 cost model needs to know of a run (gap9.model.cost_report's fractions)
-        self.samples_marched, self.samples_trained = 0, 0
-        self.dropped = 1.0  # share of the samples compaction dropped when it last ran
+        self.tally = compaction.Tally()  # samples marched and trained on: the GAP9 model's input
         self.samples_per_ray = float(min(cfg.max_samples_per_ray, cfg.march_steps))
         self.images = None
         self.camera: Camera | None = None
@@ -149,12 +146,7 @@ class Trainer:
     def _lr(self, step: int) -> float:
         """The model's learning rate at ``step`` (the photometric group takes
         ``photometric_lr_ratio`` times it)."""
-        cfg = self.cfg
-        if cfg.lr_schedule == "constant":
-            return cfg.lr
-        if cfg.lr_schedule == "exp":
-            return cfg.lr * cfg.lr_final_ratio ** min(step / max(self.lr_steps, 1), 1.0)
-        raise InputError(f"unknown lr_schedule {cfg.lr_schedule!r}: use 'exp' or 'constant'")
+        return budget.learning_rate(self.cfg, step, self.lr_steps)
 
     def _draw_rays(self, n_rays: int) -> RayBatch:
         """Random pixels of ``images_per_step`` random training images: rays and targets."""
@@ -199,13 +191,8 @@ class Trainer:
         )  # fmt: skip
         self.samples_per_ray = max(s.n / n_rays, 0.01)
         rays, s = whole_rays(rays, s, cfg.batch_samples)
-        kept, thresh = s, cfg.train_min_transmittance
-        if thresh > 0 and compaction.due(self.step, self.dropped):
-            kept = compaction.visible(s, rays.origins, rays.dirs, self.field, thresh)
-            self.dropped = 1.0 - kept.n / max(s.n, 1)
-        self.samples_marched += s.n
-        self.samples_trained += kept.n
-        return rays, kept
+        thresh = cfg.train_min_transmittance
+        return rays, self.tally.compact(self.step, s, rays.origins, rays.dirs, self.field, thresh)
 
     def _render_rays(self, origins, dirs, s: Samples, bg) -> tuple[torch.Tensor, torch.Tensor]:
         """Colour [R, C] of rays through the field (with autograd) and each ray's distortion
@@ -361,7 +348,7 @@ class Trainer:
                 "grid": self.grid_state(),
                 "step": self.step,
                 "train_seconds": self.train_seconds,
-                "samples": [self.samples_marched, self.samples_trained],
+                "samples": [self.tally.marched, self.tally.trained],
                 "samples_per_ray": self.samples_per_ray,
                 "rng": {"generator": self.generator.get_state(), "torch": torch.get_rng_state()},
                 "intrinsics": None if self.camera is None else dataclasses.asdict(self.camera),
@@ -399,7 +386,7 @@ class Trainer:
         self.load_grid_state(ck["grid"])
         self.step = int(ck["step"])
         self.train_seconds = float(ck["train_seconds"])
-        self.samples_marched, self.samples_trained = ck.get("samples", (0, 0))  # none before
+        self.tally.marched, self.tally.trained = ck.get("samples", (0, 0))  # none before
         self.samples_per_ray = float(ck["samples_per_ray"])
         self.generator.set_state(ck["rng"]["generator"])
         torch.set_rng_state(ck["rng"]["torch"])
@@ -439,10 +426,6 @@ class Trainer:
         bg = self.scene.background if background is None else background
         return render_view(self.volume(), c2w, camera, tuple(bg), **thresholds)
 
-    def render_rays(self, origins, dirs, background, **thresholds: float) -> torch.Tensor:
-        """Colours [R, C] of rays [R, 3] (:func:`nerf.render.render_rays`)."""
-        return render_rays(self.volume(), origins, dirs, background, **thresholds)
-
     def evaluate(
         self, test: Dataset, views=None, progress: bool = False, keep_images: bool = False
     ) -> dict:
@@ -459,13 +442,8 @@ class Trainer:
         return self.evaluate(test, None, progress, keep_images=True)
 
     def sample_counts(self) -> dict[str, float]:
-        """What a run's steps worked on: {"marched", "trained"}: samples over the run (trained:
-        after compaction), "hull_fraction": the share of occupancy cells the visual hull allows
-        (1.0 without alpha masks)."""
-        allowed = self.grid.allowed
-        hull = 1.0 if allowed is None else float(allowed.float().mean())
-        return {"marched": self.samples_marched, "trained": self.samples_trained,
-                "hull_fraction": hull}  # fmt: skip
+        """What the run's steps worked on (:meth:`.compaction.Tally.counts`)."""
+        return self.tally.counts(self.grid.allowed)
 
     def parameter_count(self) -> int:
         """Trainable parameters (hash table + MLPs + far field)."""

@@ -17,6 +17,7 @@ from dronecap.gap9 import arch
 from dronecap.gap9.model import cost_report
 from dronecap.nerf.config import preset, problems
 from dronecap.nerf.far_field import FarField, equirect_coords
+from dronecap.nerf.render import render_rays
 from dronecap.nerf.resolve import choice_lines, resolve
 from dronecap.nerf.trainer import Trainer
 from dronecap.nerf.volrend import render_packed
@@ -95,7 +96,7 @@ def test_rays_that_miss_the_box_render_the_far_field(cube_rgb):
     origins = torch.tensor([[5.0, 5.0, 5.0]]).expand(16, 3)
     dirs = torch.cat([_unit(32)[_unit(32)[:, 0] > 0][:16].abs()], 0)  # away from the box
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-    got = tr.render_rays(origins, dirs, torch.zeros(3))
+    got = render_rays(tr.volume(), origins, dirs, torch.zeros(3))
     torch.testing.assert_close(got, tr.field.far(dirs))
 
 
@@ -105,7 +106,7 @@ def test_the_far_field_starts_at_far_init(cube_rgb, kind):
     tr = Trainer(_cfg(kind, far_init=0.1), dataclasses.replace(cube_rgb, alpha=None))
     origins = torch.tensor([[5.0, 5.0, 5.0]]).expand(8, 3)
     dirs = _unit(8).abs()  # away from the box: the far field alone
-    got = tr.render_rays(origins, dirs / dirs.norm(dim=-1, keepdim=True), torch.zeros(3))
+    got = render_rays(tr.volume(), origins, dirs / dirs.norm(dim=-1, keepdim=True), torch.zeros(3))
     torch.testing.assert_close(got, torch.full((8, 3), 0.1))
     for bad in (0.0, 1.0, float("nan")):
         assert any("far_init" in line for line in problems(_cfg(kind, far_init=bad)))

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from dronecap.nerf.config import preset
+from dronecap.nerf.render import render_rays
 from dronecap.nerf.trainer import Trainer, TrainingDiverged
 
 
@@ -180,10 +181,10 @@ def test_render_rays_matches_packed_reference(cube_rgb, monkeypatch):
         ref = tr._render_rays(origins, dirs, s, bg)[0].clamp(0, 1)
     assert s.n > 0 and int(s.counts.max()) > 8  # some rays need several rounds
     exact = dict(min_transmittance=0.0, min_weight=0.0)
-    default = tr.render_rays(origins, dirs, bg)
-    whole = tr.render_rays(origins, dirs, bg, **exact)
+    default = render_rays(tr.volume(), origins, dirs, bg)
+    whole = render_rays(tr.volume(), origins, dirs, bg, **exact)
     monkeypatch.setattr(render_mod, "RENDER_ROUND", 3)
-    rounds = tr.render_rays(origins, dirs, bg, **exact)
+    rounds = render_rays(tr.volume(), origins, dirs, bg, **exact)
     torch.testing.assert_close(whole, ref, atol=1e-5, rtol=0)
     torch.testing.assert_close(rounds, ref, atol=1e-5, rtol=0)
     # dropped tail < 1e-3 of the background, skipped weights < 1e-4 each (few per ray)
