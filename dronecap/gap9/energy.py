@@ -28,8 +28,8 @@ def energy_report(lat: dict, traffic: dict, steps: int, p: Platform) -> dict:
     """Joules per optimizer step, per run of ``steps`` steps and per rendered frame.
 
     Args:
-        lat: :func:`dronecap.gap9.model.latency` (seconds: ``step``, ``train``, ``render_frame``).
-        traffic: :func:`dronecap.gap9.model.l3_traffic` (bytes: ``step``, ``occupancy_run``,
+        lat: :func:`dronecap.gap9.timing.latency` (seconds: ``step``, ``train``, ``render_frame``).
+        traffic: :func:`dronecap.gap9.timing.l3_traffic` (bytes: ``step``, ``occupancy_run``,
             ``render_frame``).
         steps: optimizer steps of the run.
         p: the platform (power, L3 energy per byte, their sources).
