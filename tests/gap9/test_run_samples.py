@@ -9,27 +9,16 @@ import json
 import pytest
 
 from dronecap.gap9 import arch
-from dronecap.gap9.model import RunSamples, cost_report, deployed, load_platform
+from dronecap.gap9.model import RunSamples, cost_report, deployed
 from dronecap.gap9.search import Point, load_runs, to_target
 from dronecap.nerf import occupancy
-from dronecap.nerf.config import TrainConfig, preset
+from dronecap.nerf.config import preset
+from tests.gap9.conftest import TOY
 
 # the default `scene-sized` preset as resolved on lego, in GAP9 tiles
 LEGO = deployed(
     preset("scene-sized").replace(n_max=223, log2_hashmap=14, grid_res=64, march_steps=302)
 )
-# a 2-level toy (tests/gap9/test_model.py's TOY): 8 samples per step in tiles of 4
-TOY = TrainConfig(
-    levels=2, features=2, log2_hashmap=5, n_min=2, n_max=4, hidden=4, density_layers=1,
-    color_layers=1, geo_features=3, sh_degree=1, channels=1, grid_res=4, batch_samples=8,
-    tile_samples=4, resolution=10, images_per_step=1, train_images=3, steps=10, grid_warmup=2,
-    grid_every=4, march_steps=16,
-)  # fmt: skip
-
-
-@pytest.fixture(scope="module")
-def gap9():
-    return load_platform()
 
 
 @pytest.mark.parametrize(
