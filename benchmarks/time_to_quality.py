@@ -180,7 +180,7 @@ def report(args: argparse.Namespace) -> None:
 
 # The default before this session's changes, as overrides of today's: what `compare` runs as
 # "old" beside the current default ("new") in the same process.
-OLD_DEFAULT = ("train_min_transmittance=0",)
+OLD_DEFAULT = ("batch_counts=marched",)
 COMPARE_SCENES = ("lego", "corridor", "himax-test_23")
 
 

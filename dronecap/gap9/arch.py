@@ -295,16 +295,19 @@ def prepass_ops_per_sample(cfg: TrainConfig) -> dict[str, int]:
 
 
 def kernel_shares(cfg: TrainConfig, trained_fraction: float) -> dict[str, dict[str, float]]:
-    """Share of a full tile's ops (:func:`ops_per_sample` x samples) each kernel spends when
-    compaction trains on ``trained_fraction`` of the marched samples, by pass and kernel: the
-    pre-pass part of a forward kernel runs on every sample, the rest of it and every backward
-    kernel on the trained ones. 1.0 everywhere at ``trained_fraction`` 1 (no compaction)."""
+    """Share of a batch's ops (:func:`ops_per_sample` x ``batch_samples``) each kernel spends
+    when compaction trains on ``trained_fraction`` of the marched samples, by pass and kernel:
+    the pre-pass part of a forward kernel runs on every marched sample, the rest of it and every
+    backward kernel on the trained ones. The batch counts the trained samples when
+    ``cfg.batch_counts`` is "trained" (a step marches B / trained_fraction samples), the marched
+    ones otherwise. 1.0 everywhere at ``trained_fraction`` 1 (no compaction)."""
     per, pre = ops_per_sample(cfg), prepass_ops_per_sample(cfg)
     f = trained_fraction
+    marched = 1 / f if cfg.batch_counts == "trained" else 1.0  # per sample of the batch
     return {
-        "forward": {k: (pre.get(k, 0) + f * (v - pre.get(k, 0))) / v
+        "forward": {k: (marched * pre.get(k, 0) + marched * f * (v - pre.get(k, 0))) / v
                     for k, v in per["forward"].items()},
-        "backward": dict.fromkeys(per["backward"], f),
+        "backward": dict.fromkeys(per["backward"], marched * f),
     }  # fmt: skip
 
 

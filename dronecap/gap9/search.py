@@ -21,7 +21,7 @@ from pathlib import Path
 from dronecap.gap9.arch import DEFAULT_GRID_RULE, GridRule
 from dronecap.gap9.model import RunSamples, cost_report, deployed
 from dronecap.gap9.platform import Platform
-from dronecap.nerf.config import TrainConfig, config_from_dict, preset
+from dronecap.nerf.config import LEGACY_VALUES, TrainConfig, config_from_dict, preset
 from dronecap.plots import pyplot, save_png
 
 # The sweep: batch B, log2(T), image side, occupancy grid side, MLP width, hash levels.
@@ -131,7 +131,9 @@ def load_runs(paths: list[str | Path]) -> list[Point]:
             raise ValueError(f"{p}: 'psnr' must be a finite number and 'config' a dict")
         curve = [(int(c["step"]), float(c["psnr"])) for c in doc.get("curve") or []]
         label = p.parent.name or str(p)
-        points.append(Point(label, config_from_dict(cfg_d), psnr, curve=curve, run=run))
+        # a run's resolved configuration: fields it predates take the values it ran with
+        cfg = config_from_dict(LEGACY_VALUES | cfg_d)
+        points.append(Point(label, cfg, psnr, curve=curve, run=run))
     return points
 
 

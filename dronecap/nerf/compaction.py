@@ -19,12 +19,16 @@ from dataclasses import dataclass
 
 import torch
 
+from .batch import RayBatch, whole_rays
 from .field import Field
 from .marching import Samples
 from .volrend import packed_weights
 
 MIN_DROPPED = 0.1  # the pre-pass costs ~5 % of a step: worth it above ~8 % of samples dropped
 PROBE_EVERY = 16  # steps between measurements while compaction does not pay
+# A step's batch counts the samples trained on (as Instant-NGP's does), so it marches more rays
+# while compaction drops samples; the marched samples of a step are capped at this many batches
+MARCH_CAP = 4
 
 
 def due(step: int, dropped: float) -> bool:
@@ -73,16 +77,20 @@ class Tally:
     trained: int = 0
     dropped: float = 1.0
 
-    def compact(self, step: int, s: Samples, origins, dirs, field: Field, thresh: float) -> Samples:
-        """The samples of step ``step`` to train on: :func:`visible` ones when :func:`due`
-        (``thresh`` > 0), else ``s``; counted."""
+    def compact(
+        self, step: int, rays: RayBatch, s: Samples, field: Field, thresh: float, batch: int
+    ) -> tuple[RayBatch, Samples]:
+        """The rays of step ``step`` and their samples to train on: the :func:`visible` ones
+        when :func:`due` (``thresh`` > 0), else ``s``, of the first whole rays holding at
+        most ``batch`` of them; counted (``s`` as marched)."""
         kept = s
         if thresh > 0 and due(step, self.dropped):
-            kept = visible(s, origins, dirs, field, thresh)
+            kept = visible(s, rays.origins, rays.dirs, field, thresh)
             self.dropped = 1.0 - kept.n / max(s.n, 1)
+        rays, kept = whole_rays(rays, kept, batch)
         self.marched += s.n
         self.trained += kept.n
-        return kept
+        return rays, kept
 
     def counts(self, allowed: torch.Tensor | None) -> dict[str, float]:
         """{"marched", "trained"}: samples over the run; "hull_fraction": the share of the

@@ -1,8 +1,9 @@
 """The Tiny-DroNeRF trainer: one training image per step, ~B packed samples, tile accumulation.
 
 A step: update the occupancy grid when due, draw rays from ``images_per_step`` random training
-images (as many as the running samples-per-ray estimate says fit in B samples), march them
-through the grid, keep whole rays up to B samples, render them tile by tile (tiles of
+images (as many as fit in B at the last step's samples per ray), march them through the grid,
+drop the samples behind opaque surfaces (:mod:`nerf.compaction`), keep whole rays up to B
+samples (``batch_counts``), render them tile by tile (tiles of
 ``tile_samples`` samples, gradients accumulated: the sum over tiles of ``loss_tile / R`` is the
 full-batch loss), the camera's learned exposure and vignetting applied to the rendered colour
 when on (:mod:`nerf.photometric`), Huber loss against the pixels composited on a random
@@ -92,14 +93,10 @@ class Trainer:
         photometric = list(self.photometric.parameters())
         if photometric:  # its own group (PHOTOMETRIC_GROUP), no weight decay
             groups.append({"params": photometric, "weight_decay": 0.0})
+        # fused: one kernel over all parameters, ~7x faster than the default multi-tensor Adam on
+        # the ~0.5 M hash-table entries (0.7 vs 6.3 ms per step, 1 thread; same update)
         self.optimizer = torch.optim.Adam(
-            groups,
-            lr=cfg.lr,
-            betas=tuple(cfg.betas),
-            eps=cfg.eps,
-            # one kernel over all parameters: ~7x faster than the default multi-tensor Adam on
-            # the ~0.5 M hash-table entries (0.7 vs 6.3 ms per step, 1 thread; same update)
-            fused=True,
+            groups, lr=cfg.lr, betas=tuple(cfg.betas), eps=cfg.eps, fused=True
         )
         self.aabb = torch.as_tensor(scene.aabb, dtype=torch.float32, device=self.device)
         diag = float(np.linalg.norm(scene.aabb[1] - scene.aabb[0]))
@@ -176,12 +173,11 @@ class Trainer:
             self.adopt(Resolved(steps, r.scene, r.reasons | {"steps": why}, r.dataset_sha256))
 
     def _march_batch(self) -> tuple[RayBatch, Samples]:
-        """Rays of one step and their samples: at most B marched samples (whole rays), less the ones
-        behind an opaque surface when compaction is due (:mod:`.compaction`; with encodings)."""
+        """Rays of one step and their samples (whole rays, with encodings when compacted): about
+        B to train on, at most MARCH_CAP x B marched (``batch_counts`` "trained"), or at most B
+        marched, less those compaction drops ("marched")."""
         cfg = self.cfg
-        n_rays = int(
-            np.clip(cfg.batch_samples / max(self.samples_per_ray, 1e-3), 16, cfg.batch_samples)
-        )
+        n_rays = int(np.clip(cfg.batch_samples / self.samples_per_ray, 16, cfg.batch_samples))
         rays = self._draw_rays(n_rays)
         t_near, t_far, _ = ray_aabb(rays.origins, rays.dirs, self.aabb)
         jitter = torch.rand(n_rays, generator=self.generator, device=self.device)
@@ -189,10 +185,12 @@ class Trainer:
             rays.origins, rays.dirs, t_near, t_far, self.step_size, self.grid, self.aabb,
             cfg.max_samples_per_ray, jitter,
         )  # fmt: skip
-        self.samples_per_ray = max(s.n / n_rays, 0.01)
-        rays, s = whole_rays(rays, s, cfg.batch_samples)
+        trained = cfg.batch_counts == "trained"  # else B counts the marched samples
+        rays, s = whole_rays(rays, s, (compaction.MARCH_CAP if trained else 1) * cfg.batch_samples)
         thresh = cfg.train_min_transmittance
-        return rays, self.tally.compact(self.step, s, rays.origins, rays.dirs, self.field, thresh)
+        rays, kept = self.tally.compact(self.step, rays, s, self.field, thresh, cfg.batch_samples)
+        self.samples_per_ray = max((kept if trained else s).n / rays.origins.shape[0], 0.01)
+        return rays, kept
 
     def _render_rays(self, origins, dirs, s: Samples, bg) -> tuple[torch.Tensor, torch.Tensor]:
         """Colour [R, C] of rays through the field (with autograd) and each ray's distortion

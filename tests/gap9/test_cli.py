@@ -240,8 +240,14 @@ def test_search_ranks_runs_by_energy_to_a_psnr(tmp_path, capsys):
     assert "never reached" in out and "SoC power: 60 mW" in out and "ASSUMPTION" in out
 
 
-def test_run_dir_cost_uses_the_runs_samples(tmp_path):
-    cfg = preset("scene-sized").replace(n_max=223, log2_hashmap=14, grid_res=64)
+@pytest.mark.parametrize("counts", ["trained", "marched"])
+def test_run_dir_cost_uses_the_runs_samples(tmp_path, counts):
+    """A run's compaction share changes its step cost: with B counting the marched samples a
+    step trains on fewer (cheaper); with B counting the trained ones it marches more (the
+    pre-pass on B / 0.43 samples, dearer)."""
+    cfg = preset("scene-sized").replace(
+        n_max=223, log2_hashmap=14, grid_res=64, batch_counts=counts
+    )
     _run_json(tmp_path / "run", cfg)
     assert main(["cost", str(tmp_path / "run")]) == 0  # still training: no metrics.json yet
     before = json.loads((tmp_path / "run" / "cost.json").read_text())
@@ -252,7 +258,8 @@ def test_run_dir_cost_uses_the_runs_samples(tmp_path):
     assert before["assumptions"]["trained_fraction"] == 1.0
     assert after["assumptions"]["trained_fraction"] == pytest.approx(0.43)
     assert after["assumptions"]["hull_fraction"] == pytest.approx(0.389)
-    assert after["latency"]["train"] < before["latency"]["train"]
+    cheaper = after["latency"]["train"] < before["latency"]["train"]
+    assert cheaper == (counts == "marched")
 
 
 def test_grid_rule_option_costs_the_papers_fixed_schedule(tmp_path):

@@ -44,19 +44,34 @@ def test_the_trainers_schedule_updates_less_in_warm_up_than_the_fixed_rule():
     assert arch.grid_schedule(flown, rule="fixed").updates == 39
 
 
-def test_compaction_hand_count_on_the_toy(gap9):
+@pytest.mark.parametrize("counts", ["marched", "trained"])
+def test_compaction_hand_count_on_the_toy(gap9, counts):
     # pre-pass per marched sample: hash 216 + density MLP 56 + ReLU 4 + exp 1 + alpha/T 6 = 283
-    assert sum(arch.prepass_ops_per_sample(TOY).values()) == 283
-    full = cost_report(TOY, gap9, samples_per_pixel=2.0)["ops"]["step"]
-    half = cost_report(TOY, gap9, samples_per_pixel=2.0, run=RunSamples(0.5))["ops"]["step"]
-    # forward: 8 samples x (283 + half of the other 336 - 283 ops); backward: 4 of 8 samples
-    assert half["forward"] == pytest.approx(8 * (283 + 0.5 * 53))
-    assert half["backward"] == pytest.approx(0.5 * full["backward"])
+    toy = TOY.replace(batch_counts=counts)
+    assert sum(arch.prepass_ops_per_sample(toy).values()) == 283
+    full = cost_report(toy, gap9, samples_per_pixel=2.0)["ops"]["step"]
+    half = cost_report(toy, gap9, samples_per_pixel=2.0, run=RunSamples(0.5))["ops"]["step"]
+    if counts == "marched":  # 8 samples marched, 4 of them trained on
+        assert half["forward"] == pytest.approx(8 * (283 + 0.5 * 53))  # 336 - 283 = 53
+        assert half["backward"] == pytest.approx(0.5 * full["backward"])
+    else:  # 16 samples marched (the pre-pass on each), 8 trained on
+        assert half["forward"] == pytest.approx(16 * 283 + 8 * 53)
+        assert half["backward"] == pytest.approx(full["backward"])
     assert (half["loss"], half["optimizer"]) == (full["loss"], full["optimizer"])
 
 
-def test_a_smaller_trained_fraction_lowers_time_and_energy_never_memory(gap9):
+def test_a_batch_of_trained_samples_costs_more_per_step_as_compaction_drops_more(gap9):
+    """B counting the trained samples: a step marches B / f, so it gets dearer as f falls (the
+    pre-pass), never below the uncompacted step; the memory (tiles) does not change."""
     reps = [cost_report(LEGO, gap9, run=RunSamples(f)) for f in (1.0, 0.7, 0.42)]
+    steps = [r["latency"]["step"] for r in reps]
+    assert steps[0] < steps[1] < steps[2] < 1.5 * steps[0]
+    assert all(r["memory"] == reps[0]["memory"] for r in reps)
+
+
+def test_a_smaller_trained_fraction_lowers_time_and_energy_never_memory(gap9):
+    marched = LEGO.replace(batch_counts="marched")  # B counts the marched samples
+    reps = [cost_report(marched, gap9, run=RunSamples(f)) for f in (1.0, 0.7, 0.42)]
     steps = [r["latency"]["step"] for r in reps]
     joules = [r["energy"]["run"] for r in reps]
     assert steps[0] > steps[1] > steps[2]
@@ -94,7 +109,7 @@ def test_run_samples_from_metrics_old_and_new():
 
 
 def test_runs_with_and_without_samples_load_and_cost(tmp_path):
-    cfg = dataclasses.asdict(LEGO.replace(steps=3000))
+    cfg = dataclasses.asdict(LEGO.replace(steps=3000, batch_counts="marched"))
     curve = [{"step": 1000, "psnr": 25.0}, {"step": 2000, "psnr": 27.0}]
     old = {"test": {"psnr": 27.5}, "config": cfg, "curve": curve}
     new = old | {"samples": {"marched": 100, "trained": 42, "hull_fraction": 0.39}}

@@ -84,14 +84,16 @@ def test_training_on_reused_encodings_gives_the_same_colour_and_gradients():
 
 
 def test_a_run_counts_what_it_marched_and_trained_and_a_checkpoint_keeps_it(cube_rgb, tmp_path):
+    from dronecap.nerf.compaction import MARCH_CAP
     from dronecap.nerf.resolve import resolve
     from dronecap.nerf.trainer import Trainer
 
     cfg = preset("test").replace(steps=40, seed=0)
     tr = Trainer(resolve(cfg, cube_rgb), cube_rgb)
-    tr.train(40)
+    logs = tr.train(40)
     n = tr.sample_counts()
-    assert 0 < n["trained"] <= n["marched"] <= 40 * cfg.batch_samples
+    assert 0 < n["trained"] <= n["marched"] <= 40 * MARCH_CAP * cfg.batch_samples
+    assert n["trained"] == sum(log["samples"] for log in logs) <= 40 * cfg.batch_samples
     assert n["hull_fraction"] < 1.0  # the cube has alpha: the grid is carved
     tr.save(tmp_path / "ck.pt")
     assert Trainer.load(tmp_path / "ck.pt", train=cube_rgb).sample_counts() == n
@@ -104,3 +106,33 @@ def test_the_pre_pass_runs_while_it_pays_and_probes_now_and_then():
     assert not due(7, MIN_DROPPED / 2)  # a scene where nearly every sample shows
     steps = [s for s in range(64) if due(s, 0.0)]
     assert steps == list(range(0, 64, PROBE_EVERY))  # measured again now and then
+
+
+def test_a_step_trains_on_about_a_batch_while_compaction_drops_samples(cube_rgb):
+    """B counts the samples trained on (the default): once the opaque cube hides marched
+    samples, a step marches more rays and still trains on about B (never marching more than
+    MARCH_CAP x B); counting the marched ones instead, a step marches at most B."""
+    from dronecap.nerf.compaction import MARCH_CAP
+    from dronecap.nerf.resolve import resolve
+    from dronecap.nerf.trainer import Trainer
+
+    per_step = {}
+    for counts in ("trained", "marched"):
+        # a high cut (transmittance 0.05) so that the small cube soon hides many samples
+        cfg = preset("test").replace(
+            steps=80, seed=0, batch_counts=counts, train_min_transmittance=0.05
+        )
+        tr = Trainer(resolve(cfg, cube_rgb), cube_rgb)
+        tr.train(60)
+        before = tr.sample_counts()
+        logs = tr.train(20)
+        after = tr.sample_counts()
+        marched = (after["marched"] - before["marched"]) / 20
+        trained = (after["trained"] - before["trained"]) / 20
+        assert max(log["samples"] for log in logs) <= cfg.batch_samples
+        per_step[counts] = trained, marched
+    b = cfg.batch_samples
+    trained, marched = per_step["trained"]
+    assert trained < 0.9 * marched  # compaction drops samples on this scene ...
+    assert trained >= 0.8 * b and marched <= MARCH_CAP * b  # ... and a step still trains ~B
+    assert per_step["marched"][1] <= b  # counting the marched ones: at most B marched
