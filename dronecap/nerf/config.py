@@ -31,7 +31,8 @@ class TrainConfig:
     # what B counts: "trained" (the samples left after compaction, as Instant-NGP counts its
     # batch: a step marches more rays while compaction drops samples) or "marched" (session 15:
     # fewer samples trained as the scene gets opaque). lego 10k steps, 1 thread: 31.24 dB in
-    # 358 s against 30.27 in 226 s (benchmarks/results/batch_counts.md)
+    # 358 s against 30.27 in 226 s; 60 s: +0.35 / +1.00 / +0.17 dB on lego / corridor / Himax
+    # (docs/training.md "The batch counts", benchmarks/results/time_to_quality_compare.md)
     batch_counts: str = "trained"
     tile_samples: int = 1024  # samples per accumulation tile (GAP9 processes 1024 at a time)
     seed: int = 0
