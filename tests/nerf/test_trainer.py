@@ -195,18 +195,22 @@ def test_render_rays_matches_packed_reference(cube_rgb, monkeypatch):
 def test_distorted_lens_trains_better_with_distorted_rays(make_cube):
     """The cube through a barrel lens (SIMPLE_RADIAL k = -0.3 over a 69 deg field: ~6 px at
     the corners of a 32 px frame), aimed so that it crosses every part of the frame: the same
-    200 steps on the same frames reach a clearly higher test PSNR with rays cast through the
+    300 steps on the same frames reach a clearly higher test PSNR with rays cast through the
     lens than with the distortion ignored (pinhole rays: the cube seems to bend from view to
-    view). Seeds 0 and 1 gave +3.7 and +2.2 dB when this test was written."""
+    view), on two seeds. Seeds 0 / 1 / 2 gave +1.22 / +1.56 / +1.84 dB when the batch began to
+    count trained samples (session 16; 200 steps then gave +0.41 / +1.69: too few to judge)."""
     import dataclasses as dc
 
     ds = make_cube(n=16, size=32, model="SIMPLE_RADIAL", distortion=(-0.3,), fov=1.2,
                    aim_offset=0.9)  # fmt: skip
     ignored = dc.replace(ds, intrinsics=ds.intrinsics.pinhole())
-    cfg = _cfg(batch_samples=4096, march_steps=64, lr_schedule="constant")
-    scores = {}
-    for name, data in (("lens", ds), ("pinhole", ignored)):
-        tr = Trainer(cfg, data)
-        tr.train(200)
-        scores[name] = tr.evaluate(data)["psnr"]
-    assert scores["lens"] > scores["pinhole"] + 1.0, scores
+    gains = []
+    for seed in (0, 1):
+        cfg = _cfg(batch_samples=4096, march_steps=64, lr_schedule="constant", seed=seed)
+        scores = {}
+        for name, data in (("lens", ds), ("pinhole", ignored)):
+            tr = Trainer(cfg, data)
+            tr.train(300)
+            scores[name] = tr.evaluate(data)["psnr"]
+        gains.append(scores["lens"] - scores["pinhole"])
+    assert min(gains) > 0.5 and sum(gains) / 2 > 1.0, gains
