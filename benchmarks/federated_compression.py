@@ -72,6 +72,7 @@ def _cli_default() -> dict:
         "server_lr",
         "server_momentum",
         "table_step",
+        "feedback",
     )
     return dict(visibility=not d.plain_average, **{n: getattr(d, n) for n in names})
 
@@ -81,6 +82,8 @@ VARIANTS: dict[str, dict] = {  # in the order they run: the reference first
     "fp16 M": dict(quant_bits=0, **SERVER_STEP),
     "fp16 default": {**DEFAULT, "quant_bits": 0},  # the default's aggregation, whole fp16 arrays
     "default": DEFAULT,
+    "carry": {**DEFAULT, "feedback": "carry"},  # error feedback: train from received + residual
+    "add": {**DEFAULT, "feedback": "add"},  # error feedback: add the residual to the change
     "q4 r3 vis M": dict(**SPARSE_UP, visibility=True, **SERVER_STEP),
     "q4 r3 vis M d5": dict(**SPARSE_UP, visibility=True, down_rows=0.05, **SERVER_STEP),
     "q4 r3 vis M d10": dict(**SPARSE_UP, visibility=True, down_rows=0.10, **SERVER_STEP),

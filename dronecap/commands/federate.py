@@ -57,6 +57,13 @@ class Settings(Base):
         help="with --quant-bits: fraction of hash-table rows a drone sends, the most changed "
         "(default 0.04)",
     )
+    feedback: str = setting(
+        "add",
+        choices=("add", "carry"),
+        help="with --quant-bits: what a drone does with its unsent change (error feedback): add "
+        "it to the next round's change, or carry it: train from the received model plus it and "
+        "send local - received, so each change is learned and sent once (default add)",
+    )
     down_rows: float = setting(
         0.0,
         minimum=0.0,
