@@ -17,6 +17,9 @@ their differences are the rounds' alone:
   session 11 the hash table takes the drones' mean change, ``--table-step mean``), and
   ``fp16 default``: the same aggregation on whole fp16 arrays (the reference the default's
   compression is held to);
+- ``carry`` and ``add``: the default exchange with ``--feedback carry`` (a drone trains from the
+  received model plus its unsent change; the default since session 16) or ``add`` (the unsent
+  change added to the next round's: the default before);
 - ``q4 r3 vis M dF``: plus sparse downloads (the global model's change, F % of the table rows
   at 4 bits, MLPs 8-bit; each drone keeps its copy);
 
