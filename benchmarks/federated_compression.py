@@ -17,9 +17,6 @@ their differences are the rounds' alone:
   session 11 the hash table takes the drones' mean change, ``--table-step mean``), and
   ``fp16 default``: the same aggregation on whole fp16 arrays (the reference the default's
   compression is held to);
-- ``carry`` and ``add``: the default exchange with ``--feedback carry`` (a drone trains from the
-  received model plus its unsent change; the default since session 16) or ``add`` (the unsent
-  change added to the next round's: the default before);
 - ``q4 r3 vis M dF``: plus sparse downloads (the global model's change, F % of the table rows
   at 4 bits, MLPs 8-bit; each drone keeps its copy);
 
@@ -75,7 +72,6 @@ def _cli_default() -> dict:
         "server_lr",
         "server_momentum",
         "table_step",
-        "feedback",
     )
     return dict(visibility=not d.plain_average, **{n: getattr(d, n) for n in names})
 
@@ -85,8 +81,6 @@ VARIANTS: dict[str, dict] = {  # in the order they run: the reference first
     "fp16 M": dict(quant_bits=0, **SERVER_STEP),
     "fp16 default": {**DEFAULT, "quant_bits": 0},  # the default's aggregation, whole fp16 arrays
     "default": DEFAULT,
-    "carry": {**DEFAULT, "feedback": "carry"},  # error feedback: train from received + residual
-    "add": {**DEFAULT, "feedback": "add"},  # error feedback: add the residual to the change
     "q4 r3 vis M": dict(**SPARSE_UP, visibility=True, **SERVER_STEP),
     "q4 r3 vis M d5": dict(**SPARSE_UP, visibility=True, down_rows=0.05, **SERVER_STEP),
     "q4 r3 vis M d10": dict(**SPARSE_UP, visibility=True, down_rows=0.10, **SERVER_STEP),

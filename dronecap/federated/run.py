@@ -137,14 +137,10 @@ def _local_round(msg: Message, context: Context, pretrain: bool) -> Message:
     else:
         trainer = Trainer(s.train_config(), train)
     received = {} if pretrain else receive(msg.content, folder, r)
-    residual = {} if pretrain or not s.quant_bits else _residual(folder, prev)
     if not pretrain:
         install_global(trainer, received, rebuild=prev < 0)
         if prev < 0:
             trainer.step = s.pretrain  # join the coordinator's learning-rate schedule
-        if residual and s.feedback == "carry":  # train on what it has not sent too
-            model, _ = unpack_update(received)
-            trainer.load_model_weights({n: v + residual[n] for n, v in model.items()})
     t0 = time.perf_counter()
     trainer.train(s.pretrain if pretrain else s.local_steps)
     train_s = time.perf_counter() - t0
@@ -154,39 +150,32 @@ def _local_round(msg: Message, context: Context, pretrain: bool) -> Message:
     if pretrain or not s.quant_bits:
         record = to_record(pack_update(trainer.model_weights(), grid, s.transfer_dtype), s.compress)
     else:
-        record = _sparse_record(s, folder, r, residual, trainer, received, grid)
+        record = _sparse_record(s, folder, r, prev, trainer, received, grid)
     metrics = MetricRecord({WEIGHT_KEY: train.n, "train-s": train_s, "partition-id": k})
     if not pretrain and str(k) in s.poison:
         record, metrics = _poisoned(s.poison[str(k)], trainer.model_weights(), record, metrics)
     return Message(RecordDict({"arrays": record, "metrics": metrics}), reply_to=msg)
 
 
-def _residual(folder: Path, prev: int) -> dict[str, np.ndarray]:
-    """The drone's error-feedback residual saved after round ``prev`` (empty: none)."""
-    path = residual_file(folder, prev)
-    return dict(np.load(path)) if prev >= 0 and path.exists() else {}
-
-
 def _sparse_record(
     s: FedSettings,
     folder: Path,
     r: int,
-    residual: dict[str, np.ndarray],
+    prev: int,
     trainer: Any,
     received: dict[str, np.ndarray],
     grid: dict[str, np.ndarray] | None,
 ) -> ArrayRecord:
     """The sparse quantised update of round ``r`` (:func:`sparse.encode_update` against the
-    ``received`` global model), the exchanged grid (if any) as whole arrays. ``residual``, the
-    previous round's unsent change, is added to this round's change (``feedback`` "add"), or
-    the drone trained from received + residual ("carry") and sends ``local - received``; the
-    new residual is saved as round ``r``'s."""
+    ``received`` global model), the exchanged grid (if any) as whole arrays; the error-feedback
+    residual is read from round ``prev``'s file and saved as round ``r``'s."""
     from dronecap.federated.sparse import encode_update
 
     model, _ = unpack_update(received)
-    add = residual if s.feedback == "add" else {}
+    res_prev = residual_file(folder, prev)
+    residual = dict(np.load(res_prev)) if prev >= 0 and res_prev.exists() else {}
     arrays, residual = encode_update(
-        trainer.model_weights(), model, add, s.sparse_rows, s.quant_bits, s.mlp_bits
+        trainer.model_weights(), model, residual, s.sparse_rows, s.quant_bits, s.mlp_bits
     )
     with atomic_output(residual_file(folder, r)) as tmp:
         with open(tmp, "wb") as f:

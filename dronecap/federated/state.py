@@ -46,8 +46,6 @@ class FedSettings:
     sparse_rows: float = 1.0  # with quant_bits: fraction of hash-table rows a drone sends
     down_rows: float = 0.0  # with quant_bits: fraction of table rows of the global model's
     # change broadcast each round (downlink.py); 0: the whole model is broadcast
-    feedback: str = "add"  # with quant_bits, the unsent change (residual): "add" it to the next
-    # round's change, or "carry" it: train from the received model + residual, send local - received
     visibility: bool = False  # average each table row over the drones that sent it only
     server_lr: float = 1.0  # FedAvgM server step size (1 with momentum 0: plain FedAvg)
     server_momentum: float = 0.0  # FedAvgM server momentum
