@@ -30,8 +30,9 @@ class Settings(Base):
     scheme: str = setting("iid", choices=("iid", "sector"), help="sharding scheme")
     # The default schedule: many short rounds, 1000 + 70 x 200 (15000 steps on the critical
     # path, as 10000 + 5 x 1000 before). Lego, 4 drones, 40 views (docs/federated.md session
-    # 16): sector 29.68 dB (was 26.83), IID 31.76 with the error feedback `carry` (was 29.37),
-    # central 30.98: short rounds keep the drones' models close while the learning rate is high.
+    # 16): sector 29.68 dB (was 26.83), central 30.98: short rounds keep the drones' models
+    # close while the learning rate is high. IID at this schedule: 31.76 with an error feedback
+    # since removed (`carry`; was 29.37); with the default `add` stopped after 45 rounds.
     pretrain: int = setting(
         1000, minimum=0, help="coordinator's N_pt steps (default 1000: many short rounds)"
     )
