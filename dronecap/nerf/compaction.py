@@ -82,13 +82,15 @@ class Tally:
     ) -> tuple[RayBatch, Samples]:
         """The rays of step ``step`` and their samples to train on: the :func:`visible` ones
         when :func:`due` (``thresh`` > 0), else ``s``, of the first whole rays holding at
-        most ``batch`` of them; counted (``s`` as marched)."""
-        kept = s
-        if thresh > 0 and due(step, self.dropped):
+        most ``batch`` of them; counted. Marched counts what the pre-pass ran on (all of
+        ``s``) or, without one, the samples kept: rays cut off by the batch were not worked on
+        beyond marching, so a run where compaction never pays counts marched == trained."""
+        kept, prepass = s, thresh > 0 and due(step, self.dropped)
+        if prepass:
             kept = visible(s, rays.origins, rays.dirs, field, thresh)
             self.dropped = 1.0 - kept.n / max(s.n, 1)
         rays, kept = whole_rays(rays, kept, batch)
-        self.marched += s.n
+        self.marched += s.n if prepass else kept.n
         self.trained += kept.n
         return rays, kept
 
