@@ -73,6 +73,8 @@ OPTIONS: dict[str, dict] = {
     # threshold; not pinned: the start chunk nearest the middle, the cores of a lone chain)
     "session 13": {"peak_threshold": 0.004, "finer_below": 400},
     "peak 0.015": {"peak_threshold": 0.015},
+    # session 14's measured SIFT setting (fewer, stronger keypoints on textured frames)
+    "peak 0.01": {"peak_threshold": 0.01, "finer_below": 300},
     # the chunks' mappers with the global bundle adjustment of unchunked flights (until
     # session 14)
     "chunk BA as 13": {
