@@ -201,7 +201,7 @@ def match(
     verify = pycolmap.TwoViewGeometryOptions()
     verify.ransac.max_error = opts.max_epipolar_error
     verify.ransac.min_num_trials = opts.verify_min_trials
-    verify.max_H_inlier_ratio = opts.max_h_inlier_ratio
+    verify.max_H_inlier_ratio = opts.resolved_max_h_ratio()
     common = {"matching_options": matching, "verification_options": verify}
     if not own_pairs:
         info["matcher"] = "per flight (Ray tasks)"

@@ -72,6 +72,12 @@ class SfmOptions:
     # sequential pairs: 61 -> 38 CPU-s at 30, same verified pairs and inliers within 0.02 %).
     verify_min_trials: int = 30
     max_h_inlier_ratio: float = 0.8  # pairs whose homography explains more are called planar
+    # ... with the global mapper: planar only when a homography explains strictly more matches
+    # than the essential matrix. GLOMAP takes each pair's relative pose from its stored model, and
+    # a homography's decomposition is degrees off (bend.py); with 0.8 nearly every pair of a
+    # corridor flight is planar and its models came out 2.1 % (124 kept frames) and 8.5 % (446)
+    # ATE, accepted by the guard; with 1.0, 0.135 % and 0.159 % (docs/sfm.md "Session 17").
+    global_max_h_inlier_ratio: float = 1.0
     # --- mapping ---
     min_num_matches: int = 15  # verified matches for a pair to count in mapping
     # Pixel thresholds sized for 160x160 frames. COLMAP's defaults (4 px reprojection, 12 px
@@ -197,6 +203,12 @@ class SfmOptions:
         if self.matcher != "auto":
             return self.matcher
         return "exhaustive" if n_frames < self.exhaustive_below else "sequential"
+
+    def resolved_max_h_ratio(self) -> float:
+        """The homography share above which two-view verification labels a pair planar."""
+        if self.mapper == "global":
+            return self.global_max_h_inlier_ratio
+        return self.max_h_inlier_ratio
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able copy (stored in provenance and the report)."""
