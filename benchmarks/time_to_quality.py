@@ -19,7 +19,9 @@ point (26.94 dB in 28 s) drawn for reference.
 `compare` trains the old default (``OLD_DEFAULT``: today's with the changes undone) and the new
 one on lego, the simulated corridor and the real Himax test_23 sequence (built as
 benchmarks/scene_sized.py builds them), taking turns in one process, and writes
-``benchmarks/results/time_to_quality_compare.md`` and ``.png``.
+``benchmarks/results/time_to_quality_compare.md`` and ``.png`` (``--out``). ``--old`` and
+``--new`` give each side its own ``FIELD=VALUE`` overrides of today's default (a candidate
+default is ``--old`` with nothing against ``--new lr=0.015``).
 
 Single thread (``--threads 1``) unless told; run under ``nice`` on the shared machine.
 """
@@ -225,7 +227,7 @@ def compare(args: argparse.Namespace) -> None:
     from dronecap.nerf.config import apply_sets, preset
 
     torch.set_num_threads(args.threads)
-    variants = {"old": list(OLD_DEFAULT), "new": []}
+    variants = {"old": args.old, "new": args.new}
     rows: dict[tuple[str, str], list[dict]] = {}
     for rnd in range(args.rounds):
         for scene in args.scenes.split(","):
@@ -255,8 +257,9 @@ def _compare_report(args: argparse.Namespace, variants: dict, rows: dict) -> Non
         f"# Time to quality: old default against new, {args.budget:g} CPU s on 1 thread",
         "",
         f"`.venv/bin/python benchmarks/time_to_quality.py compare --budget {args.budget:g} "
-        f"--rounds {args.rounds} --scenes {args.scenes}`; old = new + "
-        f"`{' '.join(OLD_DEFAULT)}`. Training clock: process CPU time of the optimizer steps "
+        f"--rounds {args.rounds} --scenes {args.scenes}`; old = today's default + "
+        f"`{' '.join(args.old)}`, new = today's default + `{' '.join(args.new)}`. "
+        "Training clock: process CPU time of the optimizer steps "
         "(the time on an idle core; the machine is shared), the schedule planned as "
         "`--time-budget` plans it. PSNR on up to 20 test views spread over the test split. "
         "Medians over rounds (seed + round); `setup` is the CPU time to build the trainer "
@@ -284,9 +287,9 @@ def _compare_report(args: argparse.Namespace, variants: dict, rows: dict) -> Non
         ax.set_ylabel("test PSNR [dB]")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    shared.write_page(lines, shared.RESULTS / "time_to_quality_compare.md")
+    shared.write_page(lines, shared.RESULTS / f"{args.out}.md")
     fig.tight_layout()
-    fig.savefig(shared.RESULTS / "time_to_quality_compare.png", dpi=110)
+    fig.savefig(shared.RESULTS / f"{args.out}.png", dpi=110)
 
 
 def main() -> None:
@@ -307,6 +310,9 @@ def main() -> None:
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--threads", type=int, default=1)
     c.add_argument("--cache", default="/tmp/dronecap-time-to-quality")
+    c.add_argument("--old", nargs="*", default=list(OLD_DEFAULT), help="FIELD=VALUE of 'old'")
+    c.add_argument("--new", nargs="*", default=[], help="FIELD=VALUE of 'new' (default: none)")
+    c.add_argument("--out", default="time_to_quality_compare", help="results file name")
     args = p.parse_args()
     {"run": run, "report": report, "compare": compare}[args.cmd](args)
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from dronecap.sfm.bend import rotation_disagreement
+from dronecap.sfm.bend import WIDE_P95_DEG, rotation_disagreement
 from dronecap.sfm.options import SfmOptions
 
 
@@ -39,7 +39,8 @@ def global_map(
     database: Path, image_dir: Path, out_dir: Path, opts: SfmOptions, refine_camera: bool
 ) -> tuple[dict[str, dict[str, float]], dict[str, Any]]:
     """Map with GLOMAP into ``out_dir/<k>``; returns the models (folder -> frames, reprojection)
-    and the guard's record: frames of the largest model, its bend check and ``kept``."""
+    and the guard's record: frames of the largest model, its bend check (consecutive frames,
+    and frames ``opts.overlap`` apart: ``wide_check``) and ``kept``."""
     import pycolmap
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -58,7 +59,9 @@ def global_map(
     if found:
         best = max(found, key=lambda j: found[j]["frames"])
         record.update(
-            frames=found[best]["frames"], bend_check=rotation_disagreement(database, Path(best))
+            frames=found[best]["frames"],
+            bend_check=rotation_disagreement(database, Path(best)),
+            wide_check=rotation_disagreement(database, Path(best), max(opts.overlap, 1)),
         )
     return found, record
 
@@ -66,11 +69,15 @@ def global_map(
 def accept(record: dict[str, Any], usable: int, min_fraction: float) -> bool:
     """Whether a global model (its ``record`` from :func:`global_map`) may be kept: at least
     ``min_fraction`` of the ``usable`` frames, not bent, and its bend check's tail as narrow as
-    a straight model's (:data:`dronecap.sfm.bend.TAIL_P95_DEG`)."""
+    a straight model's (:data:`dronecap.sfm.bend.TAIL_P95_DEG`), and frames further apart
+    agreeing as closely (:data:`dronecap.sfm.bend.WIDE_P95_DEG`)."""
     bend = record.get("bend_check") or {}
+    wide = record.get("wide_check") or {}
     return (
         record["frames"] >= min_fraction * usable
         and bend.get("pairs", 0) > 0
         and not bend["bent"]
         and bend["tail_ok"]
+        and wide.get("pairs", 0) > 0
+        and wide["p95_deg"] <= WIDE_P95_DEG
     )
