@@ -1,9 +1,13 @@
 """Global mapping (pycolmap's GLOMAP: rotation averaging, global positioning, bundle adjustment),
 guarded: it is kept only when it registers as many frames as asked and the bend check
-(:mod:`dronecap.sfm.bend`) finds it straight; otherwise the caller maps incrementally.
+(:mod:`dronecap.sfm.bend`) finds it straight, for consecutive frames and for frames
+``overlap`` apart; otherwise the caller maps incrementally.
 
 Why the guard: at 160 px GLOMAP has reported every frame registered with 10-32 % trajectory
 error (issue 15; the simulated corridor 9.5 %). Its registration count alone is never trusted.
+Most of that error came from pairs labelled planar, whose pose GLOMAP takes from a homography
+decomposition: with the global mapper, verification calls a pair planar only when a homography
+explains more matches than the essential matrix (``SfmOptions.global_max_h_inlier_ratio``).
 """
 
 from __future__ import annotations
