@@ -6,7 +6,8 @@ thread with the default 10k-step schedule (its learning-rate decay spans 10k ste
 --max-steps; each run's ``metrics.json`` (curve, resolved configuration, trained samples) is
 costed by ``dronecap cost --search``'s model (:func:`dronecap.gap9.search.to_target`): GAP9
 minutes and joules to the first check at or above the target. Several seeds per variant, in
-turn; the table gives each run and the median per variant. Usage::
+turn; the table gives each run and the median per variant. A run --work already holds
+(``NAME_sSEED/metrics.json``) is reused unless --fresh. Usage::
 
     PYTHONPATH=. .venv/bin/python benchmarks/gap9_curves.py --work /tmp/g9 \
         --variants default "lr15:lr=0.015" --seeds 0 1 2 --out gap9_curves
@@ -86,6 +87,7 @@ def main() -> None:
     ap.add_argument("--target", type=float, default=26.94, help="PSNR dB (the paper's)")
     ap.add_argument("--margin", type=float, default=0.15, help="dB past the target to stop")
     ap.add_argument("--out", default="gap9_curves")
+    ap.add_argument("--fresh", action="store_true", help="redo runs --work already holds")
     args = ap.parse_args()
     torch.set_num_threads(1)
     lego = args.work / "lego.h5"
@@ -111,7 +113,10 @@ def main() -> None:
         mins = []
         for seed in args.seeds:
             out = args.work / f"{name}_s{seed}"
-            doc = curve_run(ds, sets, seed, args, out)
+            if (out / "metrics.json").exists() and not args.fresh:  # a run of an earlier call
+                doc = json.loads((out / "metrics.json").read_text())
+            else:
+                doc = curve_run(ds, sets, seed, args, out)
             row = to_target(load_runs([out / "metrics.json"]), args.target)[0]
             mins.append(row["minutes"] if row["minutes"] is not None else float("inf"))
             cost = (
@@ -119,7 +124,8 @@ def main() -> None:
                 if row["steps"] is not None
                 else "not reached | | "
             )
-            lines.append(f"| {name} | {seed} | {cost} | {doc['psnr']:.2f} | {doc['load']:.1f} |")
+            load = f"{doc['load']:.1f}" if "load" in doc else ""
+            lines.append(f"| {name} | {seed} | {cost} | {doc['psnr']:.2f} | {load} |")
             print(lines[-1], flush=True)
         medians.append(
             f"| {name} (`{' '.join(sets) or 'today'}`) | {statistics.median(mins):.1f} |"
