@@ -143,7 +143,7 @@ PRESETS: dict[str, TrainConfig] = {
     # paper's 0.01 until session 17; docs/training.md "The learning rate"): lego 10k steps 31.17
     # vs 31.07 dB; 60 s on one thread lego 28.15 vs 27.92, corridor 26.50 vs 26.21, Himax
     # test_23 24.85 vs 24.93 (time_to_quality_compare_lr_s17.md); modelled GAP9 minutes to
-    # 26.94 dB, seeds 0 / 1: 9.8 / 8.8 vs 11.1 / 9.5 (gap9_curves_s17.md).
+    # 26.94 dB, seeds 0 / 1 / 2: 9.8 / 8.8 / 10.0 vs 11.1 / 9.5 / 9.2 (gap9_curves_s17.md).
     "scene-sized": _row(8192, 13).replace(sized=True, tile_samples=8192, lr=0.015),
     # A seconds-long configuration for the test suite.
     "test": TrainConfig(
