@@ -17,6 +17,8 @@ their differences are the rounds' alone:
   session 11 the hash table takes the drones' mean change, ``--table-step mean``), and
   ``fp16 default``: the same aggregation on whole fp16 arrays (the reference the default's
   compression is held to);
+- ``default d5``: the default plus sparse downloads of 5 % of the table rows (``--down-rows
+  0.05``);
 - ``q4 r3 vis M dF``: plus sparse downloads (the global model's change, F % of the table rows
   at 4 bits, MLPs 8-bit; each drone keeps its copy);
 
@@ -81,6 +83,7 @@ VARIANTS: dict[str, dict] = {  # in the order they run: the reference first
     "fp16 M": dict(quant_bits=0, **SERVER_STEP),
     "fp16 default": {**DEFAULT, "quant_bits": 0},  # the default's aggregation, whole fp16 arrays
     "default": DEFAULT,
+    "default d5": {**DEFAULT, "down_rows": 0.05},  # plus sparse downloads, 5 % of the rows
     "q4 r3 vis M": dict(**SPARSE_UP, visibility=True, **SERVER_STEP),
     "q4 r3 vis M d5": dict(**SPARSE_UP, visibility=True, down_rows=0.05, **SERVER_STEP),
     "q4 r3 vis M d10": dict(**SPARSE_UP, visibility=True, down_rows=0.10, **SERVER_STEP),
