@@ -64,6 +64,7 @@ from dronecap.federated.fedavg import (
     to_record,
     unpack_update,
 )
+from dronecap.federated.hulls import HULL_KEY, hull_record, restrict_to_hulls
 from dronecap.federated.state import (
     EVERY_CLIENT,
     FINAL,
@@ -98,13 +99,15 @@ clientapp = ClientApp()
 
 @clientapp.query()
 def _describe(msg: Message, context: Context) -> Message:
-    """Reply with this drone's partition id and train-image count."""
+    """Reply with this drone's partition id, train-image count and visual hull (hulls.py)."""
+    from dronecap.nerf.trainer import Trainer
+
     k = int(context.node_config["partition-id"])
     s = load_settings(Path(str(msg.content["config"]["run-dir"])))
-    n = len(open_dataset(s.shards[k]).indices("train"))
-    return Message(
-        RecordDict({"info": MetricRecord({"partition-id": k, WEIGHT_KEY: n})}), reply_to=msg
-    )
+    train = train_split(s.shards[k])
+    info = MetricRecord({"partition-id": k, WEIGHT_KEY: train.n})
+    hull = hull_record(Trainer(s.train_config(), train).grid.allowed)
+    return Message(RecordDict({"info": info, HULL_KEY: hull}), reply_to=msg)
 
 
 @clientapp.train("pretrain")
@@ -282,7 +285,8 @@ def serve(grid: Grid, run_dir: Path) -> None:
     s = load_settings(run_dir)
     history = load_rounds(run_dir)
     evaluator = GlobalEvaluator(s)
-    nodes = _discover(grid, s, run_dir)
+    nodes, hulls = _discover(grid, s, run_dir)
+    restrict_to_hulls(evaluator.trainer, hulls)  # the global grid inside every drone's hull
     if not history:
         t0 = time.perf_counter()
         msg = _message(grid, nodes[0], PRETRAIN_ACTION, ConfigRecord({"run-dir": str(run_dir)}))
@@ -356,21 +360,28 @@ def _message(grid: Grid, node: int, message_type: str, config: ConfigRecord) -> 
     return Message(RecordDict({"config": config}), dst_node_id=node, message_type=message_type)
 
 
-def _discover(grid: Grid, s: FedSettings, run_dir: Path) -> dict[int, int]:
-    """partition id -> node id of every drone (waits until all ``n_clients`` are connected)."""
+def _discover(
+    grid: Grid, s: FedSettings, run_dir: Path
+) -> tuple[dict[int, int], dict[int, ArrayRecord]]:
+    """partition id -> node id of every drone (waits until all ``n_clients`` are connected),
+    and partition id -> the hull record it sent."""
     while len(node_ids := list(grid.get_node_ids())) < s.n_clients:
         time.sleep(1.0)
     config = ConfigRecord({"run-dir": str(run_dir)})
     msgs = [_message(grid, n, MessageType.QUERY, config) for n in node_ids]
     found: dict[int, int] = {}
+    hulls: dict[int, ArrayRecord] = {}
     for reply in grid.send_and_receive(msgs, timeout=s.round_timeout):
         if reply.has_error():
             why = _last_line(reply.error.reason)
             raise FederationFailed(f"drone {reply.metadata.src_node_id} failed to start: {why}")
-        found[int(reply.content["info"]["partition-id"])] = reply.metadata.src_node_id
+        k = int(reply.content["info"]["partition-id"])
+        found[k] = reply.metadata.src_node_id
+        if HULL_KEY in reply.content:
+            hulls[k] = reply.content[HULL_KEY]
     if sorted(found) != list(range(s.n_clients)):
         raise FederationFailed(f"expected partitions 0..{s.n_clients - 1}, found {sorted(found)}")
-    return found
+    return found, hulls
 
 
 class GlobalEvaluator:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from dronecap.nerf.config import preset
 
@@ -105,6 +106,12 @@ def test_simulation_two_drones_with_a_failing_client(lego_shards, tmp_path):
     assert all(np.array_equal(w[k], mine[k]) for k in w)
     doc = json.loads((run / "rounds.json").read_text())
     assert doc["settings"]["fail_client"] == 1
+    # the global model's grid was rebuilt inside every drone's visual hull (sent at discovery)
+    from dronecap.federated.state import train_split
+
+    hulls = [Trainer(s.train_config(), train_split(p)).grid.allowed for p in lego_shards]
+    occupied = torch.from_numpy(glob2.grid_state()["occupied"]).reshape(hulls[0].shape)
+    assert occupied.any() and not (occupied & ~(hulls[0] & hulls[1])).any()
 
 
 def _check_server_momentum_step(run: Path, rounds: int, lr: float, beta: float) -> None:
