@@ -21,8 +21,9 @@ OPTION_HELP = {
     "loop_period": "loop detection: query every this-many-th frame",
     "loop_num_images": "loop detection: frames retrieved per query",
     "cross_num_images": "a swarm: frames of the other drones' flights matched with each frame",
-    "ray": "a swarm: each flight's features and own pairs as a Ray task: 'local' or a Ray "
-    "cluster address ('auto', ray://HOST:10001); empty: here",
+    "ray": "features and sequential pairs of each piece of a flight as a Ray task: 'local' or "
+    "a Ray cluster address ('auto', ray://HOST:10001); empty: here",
+    "ray_piece_frames": "--ray: frames of one task (each flight is cut into pieces this long)",
     "min_registration": "fail below this registered fraction",
     "seed": "mapper random seed",
     "init_trials": "2: also map from COLMAP's initial pair; keep best",

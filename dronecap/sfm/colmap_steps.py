@@ -1,4 +1,5 @@
-"""The COLMAP phases on pycolmap: SIFT extraction, matching (with a home-made loop index), mapping.
+"""The COLMAP phases on pycolmap after SIFT (:mod:`dronecap.sfm.features`): matching (with a
+home-made loop index) and mapping.
 
 Each function works on files (an image folder, a COLMAP database, model folders) so that the
 whole sequence can run in a child process (:mod:`dronecap.sfm.isolate`): a COLMAP ``CHECK``
@@ -19,10 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from dronecap.sfm.camera_plan import ESTIMATE_MODEL
-from dronecap.sfm.flights import flight_of
 from dronecap.sfm.initial_pair import FALLBACK_MIN_ANGLE
-from dronecap.sfm.options import FINEST_OCTAVE, SfmOptions
+from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.retrieval import write_cross_flight_pairs, write_loop_pairs
 
 # Two chunk chains (sfm/chunks.py, two threads) opening one COLMAP database at the same
@@ -34,103 +33,6 @@ OPEN_ATTEMPTS = 3
 TRAIN_DESCRIPTORS = 20000  # descriptors sampled to train the flight's visual vocabulary
 PAIR_TRIES = 3  # our initial pairs tried in turn (best first) until one starts a non-tiny model
 NARROW_PAIR_MARGIN = 0.8  # a pair under init_min_tri_angle starts with this x its measured angle
-MIN_KEYPOINTS = 16  # a frame with fewer SIFT keypoints cannot register (reported as textureless)
-
-
-def extract(
-    database: Path,
-    image_dir: Path,
-    names: list[str],
-    opts: SfmOptions,
-    cameras: list[tuple[str, list[float]] | None],
-) -> dict[str, int]:
-    """SIFT on CPU into ``database``: one camera shared by every image, or for a swarm (names
-    in a folder per drone, ``reconstruct.image_names``) one camera per folder.
-
-    Args:
-        cameras: per drone, (COLMAP model name, params) when intrinsics are known (params in
-            COLMAP's pixel convention), or None to let COLMAP guess a camera of
-            ``ESTIMATE_MODEL`` from the image size.
-
-    Returns:
-        image name -> number of keypoints.
-    """
-    import pycolmap
-
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = ESTIMATE_MODEL
-    if len(cameras) == 1 and cameras[0] is not None:
-        reader.camera_model = cameras[0][0]
-        reader.camera_params = ",".join(f"{v:.10g}" for v in cameras[0][1])
-    mode = pycolmap.CameraMode.SINGLE if len(cameras) == 1 else pycolmap.CameraMode.PER_FOLDER
-    ext = pycolmap.FeatureExtractionOptions()
-    ext.num_threads = opts.num_threads
-    ext.sift.max_num_features = opts.max_features
-    ext.sift.first_octave = opts.first_octave
-    ext.sift.peak_threshold = opts.peak_threshold
-    pycolmap.extract_features(
-        database,
-        image_dir,
-        image_names=names,
-        camera_mode=mode,
-        reader_options=reader,
-        extraction_options=ext,
-        device=pycolmap.Device.cpu,
-    )
-    with pycolmap.Database.open(database) as db:
-        if len(cameras) > 1:
-            _set_folder_cameras(db, cameras)
-        return {im.name: db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()}
-
-
-def _set_folder_cameras(db: Any, cameras: list[tuple[str, list[float]] | None]) -> None:
-    """Give each drone's folder camera its known model and parameters (``cameras`` per drone;
-    None: COLMAP's guess stays)."""
-    import pycolmap
-
-    done: set[int] = set()
-    for im in db.read_all_images():
-        known = cameras[flight_of(im.name)]
-        if known is None or im.camera_id in done:
-            continue
-        old = db.read_camera(im.camera_id)
-        cam = pycolmap.Camera(
-            model=known[0],
-            width=old.width,
-            height=old.height,
-            params=np.asarray(known[1], np.float64),
-            camera_id=im.camera_id,
-        )
-        cam.has_prior_focal_length = True
-        db.update_camera(cam)
-        done.add(im.camera_id)
-
-
-def extract_finer_when_sparse(
-    database: Path,
-    image_dir: Path,
-    names: list[str],
-    opts: SfmOptions,
-    cameras: list[tuple[str, list[float]] | None],
-) -> tuple[dict[str, int], int]:
-    """:func:`extract` at ``opts.first_octave``; when the frames' median keypoint count is
-    under ``opts.finer_below``, the database is built again one octave finer (never finer
-    than :data:`FINEST_OCTAVE`) at the contrast threshold ``opts.finer_peak_threshold``.
-
-    Returns:
-        (image name -> number of keypoints, the first octave the database holds).
-    """
-    octave = opts.first_octave
-    keypoints = extract(database, image_dir, names, opts, cameras)
-    median = float(np.median(list(keypoints.values()))) if keypoints else 0.0
-    if octave > FINEST_OCTAVE and median < opts.finer_below:
-        database.unlink()
-        octave -= 1
-        finer = dataclasses.replace(
-            opts, first_octave=octave, peak_threshold=opts.finer_peak_threshold
-        )
-        keypoints = extract(database, image_dir, names, finer, cameras)
-    return keypoints, octave
 
 
 def build_visual_index(database: Path, out_file: Path, opts: SfmOptions) -> int:
@@ -196,15 +98,9 @@ def match(
 
     kind = opts.resolved_matcher(n_frames)
     info: dict[str, Any] = {"matcher": kind}
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = opts.num_threads
-    verify = pycolmap.TwoViewGeometryOptions()
-    verify.ransac.max_error = opts.max_epipolar_error
-    verify.ransac.min_num_trials = opts.verify_min_trials
-    verify.max_H_inlier_ratio = opts.resolved_max_h_ratio()
-    common = {"matching_options": matching, "verification_options": verify}
+    common = matching_options(opts)
     if not own_pairs:
-        info["matcher"] = "per flight (Ray tasks)"
+        info["matcher"] = "pieces of flights (Ray tasks)"
     elif kind == "exhaustive":
         pycolmap.match_exhaustive(database, **common, device=pycolmap.Device.cpu)
     else:
@@ -233,6 +129,20 @@ def match(
             linked[names[b]] += 1
     info["verified_partners"] = linked
     return info
+
+
+def matching_options(opts: SfmOptions) -> dict[str, Any]:
+    """pycolmap's matching and two-view verification options for ``opts`` (keyword
+    arguments of its matching functions)."""
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = opts.num_threads
+    verify = pycolmap.TwoViewGeometryOptions()
+    verify.ransac.max_error = opts.max_epipolar_error
+    verify.ransac.min_num_trials = opts.verify_min_trials
+    verify.max_H_inlier_ratio = opts.resolved_max_h_ratio()
+    return {"matching_options": matching, "verification_options": verify}
 
 
 def _match_sequential(

@@ -62,9 +62,12 @@ class SfmOptions:
     loop_num_images: int = 15  # frames retrieved per query
     visual_words: int = 512  # size of the flight's own visual vocabulary (upper bound)
     cross_num_images: int = 5  # a swarm: frames of other drones' flights matched per frame
-    # a swarm: each flight's features and own pairs as a Ray task ("local", or a cluster
-    # address); "" runs them here (sfm/ray_front.py)
+    # features and sequential pairs of each piece of chunk_frames frames of a flight (one, or a
+    # swarm's) as a Ray task ("local", or a cluster address); "" runs them here (sfm/ray_front.py)
     ray: str = ""
+    # frames of one Ray task: the pieces each flight is cut into (a cluster gets more tasks from
+    # shorter pieces; every cut adds `overlap` frames' seam pairs matched centrally)
+    ray_piece_frames: int = 150
     max_epipolar_error: float = 4.0  # RANSAC threshold of two-view verification, pixels
     # RANSAC trials at least run per pair in two-view verification (COLMAP's default 100).
     # Matches between 160-px video frames are ~99 % inliers, so RANSAC's own stopping rule asks
@@ -170,6 +173,8 @@ class SfmOptions:
             raise ValueError(f"min_registration must be in [0, 1], got {self.min_registration}")
         if min(self.loop_period, self.loop_num_images, self.cross_num_images) < 1:
             raise ValueError("loop_period, loop_num_images and cross_num_images must be >= 1")
+        if self.ray_piece_frames < 2:
+            raise ValueError(f"ray_piece_frames must be at least 2, got {self.ray_piece_frames}")
         if self.visual_words < 16:
             raise ValueError(f"visual_words must be at least 16, got {self.visual_words}")
         if min(self.ba_global_ratio, self.chunk_ba_global_ratio) <= 1.0:

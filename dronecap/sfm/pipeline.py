@@ -36,8 +36,8 @@ from dronecap.sfm.align import (
     load_swarm_ground_truth,
 )
 from dronecap.sfm.camera_plan import CameraPlan, plan_camera
-from dronecap.sfm.colmap_steps import MIN_KEYPOINTS
 from dronecap.sfm.drones import drone_records
+from dronecap.sfm.features import MIN_KEYPOINTS
 from dronecap.sfm.flights import flight_of
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.priors import fit_swarm_to_priors, fit_to_priors, read_priors

@@ -26,13 +26,8 @@ import numpy as np
 from dronecap.sfm.bend import rotation_disagreement
 from dronecap.sfm.camera_plan import CameraPlan
 from dronecap.sfm.chunks import map_in_chunks
-from dronecap.sfm.colmap_steps import (
-    MIN_KEYPOINTS,
-    extract_finer_when_sparse,
-    incremental_map,
-    map_from_pairs,
-    match,
-)
+from dronecap.sfm.colmap_steps import incremental_map, map_from_pairs, match
+from dronecap.sfm.features import MIN_KEYPOINTS, extract_finer_when_sparse
 from dronecap.sfm.flights import image_names
 from dronecap.sfm.initial_pair import initial_pairs
 from dronecap.sfm.isolate import run_isolated
@@ -198,16 +193,17 @@ def _front_end(
     cameras: list[tuple[str, list[float]] | None],
     phase: Callable[..., float],
 ) -> list[str] | None:
-    """Extract and match into ``root``'s database (a swarm's per-flight part on Ray with
-    ``opts.ray``), filling ``out``'s keypoints, first_octave, match and times. Returns the
-    frames with enough keypoints, or None after setting ``out["stopped"]``."""
+    """Extract and match into ``root``'s database (features and sequential pairs of the
+    flights' pieces on Ray with ``opts.ray``: :mod:`dronecap.sfm.ray_front`), filling
+    ``out``'s keypoints, first_octave, match and times. Returns the frames with enough
+    keypoints, or None after setting ``out["stopped"]``."""
     db, images, times = root / "database.db", root / "images", out["times"]
-    on_ray = bool(opts.ray) and len(cameras) > 1
-    t = phase("extract" + (" + own pairs on Ray" if on_ray else ""))
+    on_ray = bool(opts.ray)
+    t = phase("extract + sequential pairs on Ray" if on_ray else "extract")
     if on_ray:
         from dronecap.sfm.ray_front import front_end_on_ray
 
-        out["keypoints"], out["first_octave"], out["flight_matching"] = front_end_on_ray(
+        out["keypoints"], out["first_octave"], ray_info = front_end_on_ray(
             db, images, names, opts, cameras
         )
     else:
@@ -221,6 +217,8 @@ def _front_end(
         return None
     t = phase("match")
     out["match"] = match(db, root, opts, len(names), swarm=len(cameras) > 1, own_pairs=not on_ray)
+    if on_ray:
+        out["match"]["ray"] = ray_info
     times["match"] = time.perf_counter() - t
     if out["match"]["verified_pairs"] == 0:
         out["stopped"] = "no pair of frames could be matched with a consistent geometry"

@@ -92,7 +92,7 @@ def test_initial_pair_on_real_frames_has_angle_and_stays_local(lego_dir, tmp_pat
     import pycolmap
 
     from dronecap.sfm.blender_flight import blender_flight
-    from dronecap.sfm.colmap_steps import extract
+    from dronecap.sfm.features import extract
     from dronecap.sfm.initial_pair import initial_pairs
 
     ds, _ = blender_flight(lego_dir, count=12)
@@ -142,7 +142,7 @@ def test_sparse_frames_are_extracted_one_octave_finer(tmp_path, textured):
     at -2, and the database then holds the finer keypoints (what matching will see)."""
     import pycolmap
 
-    from dronecap.sfm.colmap_steps import extract_finer_when_sparse
+    from dronecap.sfm.features import extract_finer_when_sparse
 
     names = _frames(tmp_path, textured)
     opts = SfmOptions(num_threads=1)

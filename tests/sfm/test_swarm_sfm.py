@@ -101,7 +101,7 @@ def test_the_front_end_on_a_local_ray_cluster_gives_the_same_model(swarm_run: Pa
     argv = ["sfm", "--workdir", str(swarm_run), "--ray", "local", "--sfm-dir", str(out)]
     assert main([*argv, "-o", str(out / "posed.h5"), "--quiet"]) == 0
     report = json.loads((out / "report.json").read_text())
-    assert report["matching"]["matcher"] == "per flight (Ray tasks)"
+    assert report["matching"]["matcher"] == "pieces of flights (Ray tasks)"
     assert report["matching"]["cross_flight_pairs"] > 0
     local, ray = open_dataset(swarm_run / "posed.h5"), open_dataset(out / "posed.h5")
 
