@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from dronecap.sfm.flights import image_names
+from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.ray_front import pieces, seam_pairs
 
 
@@ -51,3 +53,47 @@ def test_seam_pairs_are_the_sequential_pairs_across_cuts_within_a_flight() -> No
         if drones[i] == drones[j]
     }
     assert own.isdisjoint(seams) and own | set(seams) == every
+
+
+@pytest.mark.slow
+def test_one_flight_in_pieces_on_a_local_ray_cluster_gives_the_local_model(demo_corridor, tmp_path):
+    """`sfm --ray local --ray-piece-frames 40` on the demo corridor (124 kept frames): three
+    piece tasks on two workers, seams and loops matched centrally; every sequential pair is
+    matched once, and the model agrees with the local run's and with the truth."""
+    from dronecap.datasets.format import open_dataset
+    from dronecap.sfm.align import pose_accuracy
+    from dronecap.sfm.pipeline import run_sfm
+
+    def sfm(name: str, **overrides) -> dict:
+        return run_sfm(
+            demo_corridor / "frames.h5",
+            tmp_path / name / "posed.h5",
+            tmp_path / name / "sfm",
+            SfmOptions(**overrides),
+            demo_corridor / "flight.json",
+            progress=False,
+        )
+
+    local, ray = sfm("local"), sfm("ray", ray="local", ray_piece_frames=40)
+    on_ray = ray["matching"]["ray"]
+    assert ray["matching"]["matcher"] == "pieces of flights (Ray tasks)"
+    assert len(on_ray["pieces"]) == 3 and sum(on_ray["pieces"]) == local["frames_total"]
+    assert on_ray["seam_pairs"] == 2 * sum(range(1, SfmOptions().overlap + 1))
+    assert on_ray["loop_pairs"] > 0
+    sequential = sum(p["matched_pairs"] for p in on_ray["piece_matching"]) + on_ray["seam_pairs"]
+    assert sequential + on_ray["loop_pairs"] >= ray["matching"]["matched_pairs"] >= sequential
+    for rep in (local, ray):
+        assert rep["registration_rate"] >= 0.99
+        assert rep["accuracy"]["ate_percent"] < 0.5 and not rep["bend_check"]["bent"]
+    a, b = (
+        open_dataset(tmp_path / "local" / "posed.h5"),
+        open_dataset(tmp_path / "ray" / "posed.h5"),
+    )
+    both = sorted(set(a.source_index.tolist()) & set(b.source_index.tolist()))
+    assert len(both) >= 0.99 * a.n
+    pick = (
+        [list(a.source_index).index(k) for k in both],
+        [list(b.source_index).index(k) for k in both],
+    )
+    agree = pose_accuracy(b.poses[pick[1]], a.poses[pick[0]])
+    assert agree.ate_percent < 0.5 and agree.rot_median_deg < 0.5

@@ -106,23 +106,6 @@ def test_mapping_progress_counts_frames_and_gives_an_eta():
     assert bar.n == 8
 
 
-def _ingested_corridor(tmp_path_factory, name: str, frames: int):
-    """The corridor route of ``simulate --seed 11`` flown as ``frames`` frames, ingested."""
-    from dronecap.cli import main as cli
-
-    d = tmp_path_factory.mktemp(name)
-    sim = ["-q", "simulate", "--workdir", str(d), "--frames", str(frames), "--seed", "11"]
-    assert cli(sim) == 0
-    assert cli(["-q", "ingest", "--workdir", str(d), str(d / "flight.mp4")]) == 0
-    return d
-
-
-@pytest.fixture(scope="module")
-def corridor(tmp_path_factory):
-    """A short simulated corridor flight, ingested (about 50 kept frames)."""
-    return _ingested_corridor(tmp_path_factory, "corridor", 100)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "overrides",
@@ -151,12 +134,6 @@ def test_long_flight_options_pose_a_short_corridor(corridor, tmp_path, overrides
         assert rep["matching"]["loop_detection"] == "words"
     if overrides.get("mapper") == "global":
         assert rep["global_mapper"]["frames"] > 0  # tried; kept only when the guard agrees
-
-
-@pytest.fixture(scope="module")
-def demo_corridor(tmp_path_factory):
-    """The demo's 240-frame corridor route, ingested (124 kept frames)."""
-    return _ingested_corridor(tmp_path_factory, "demo_corridor", 240)
 
 
 @pytest.mark.slow
