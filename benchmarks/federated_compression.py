@@ -104,6 +104,7 @@ def main() -> None:
     ap.add_argument("--eval-views", type=int, default=4, help="test views per round")
     ap.add_argument("--score-views", type=int, default=40, help="test views of the final scores")
     ap.add_argument("--schemes", nargs="+", default=["iid", "sector"])
+    ap.add_argument("--seed", type=int, default=0, help="seed of every training (not the shards)")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS))
     ap.add_argument("--singles", action="store_true", help="also train every drone alone")
     ap.add_argument("--results", default="federated_compression")
@@ -136,6 +137,7 @@ def _settings(a: argparse.Namespace, paths: list[Path], cfg: dict, variant: str)
         rounds=a.rounds,
         transfer_dtype="fp16",
         eval_views=a.eval_views,
+        seed=a.seed,
         **VARIANTS[variant],
     )
 
@@ -259,7 +261,8 @@ def _write(a: argparse.Namespace, rows: list[dict]) -> None:
         f"--pretrain {a.pretrain} --local-steps {a.local_steps} --rounds {a.rounds} "
         f"--drones {' '.join(map(str, a.drones))} --schemes {' '.join(a.schemes)} "
         f"--score-views {a.score_views} --variants {' '.join(repr(v) for v in a.variants)} "
-        f"--results {a.results}{' --singles' if a.singles else ''}`",
+        f"--seed {a.seed} --results {a.results}{' --singles' if a.singles else ''}"
+        f"{' --only ' + a.only if a.only else ''}`",
         "",
         "| scheme | drones | variant | rounds | up B/drone/round | down B/drone/round | down max | "
         f"Wi-Fi s/round | PSNR dB | vs {REFERENCE} | vs central | vs best single | wall s |",
