@@ -88,6 +88,8 @@ OPTIONS: dict[str, dict] = {
         "chunk_ba_prune_redundant": False,
     },
     "loop images 8": {"loop_num_images": 8},
+    # RANSAC's floor of trials in two-view verification 30 -> 10 (session 18)
+    "verify 10": {"verify_min_trials": 10},
     # the front end as Ray tasks on this machine: pieces of 150 frames (session 18)
     "ray local": {"ray": "local"},
     # chunked mapping (sfm/chunks.py) above 200 usable frames, pinned as measured

@@ -126,7 +126,9 @@ def front_end_on_ray(
         ray.init(address=address, include_dashboard=False, log_to_driver=False)
     try:
         task = ray.remote(num_cpus=1)(piece_task)
-        per_piece = dataclasses.replace(opts, num_threads=1).to_dict()
+        # the matcher the whole job resolves to (a short piece alone would match exhaustively)
+        matcher = opts.resolved_matcher(len(names))
+        per_piece = dataclasses.replace(opts, num_threads=1, matcher=matcher).to_dict()
         futures = [
             task.remote(p, [(image_dir / n).read_bytes() for n in p], cameras[flight_of(p[0])],
                         per_piece)

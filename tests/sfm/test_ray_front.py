@@ -80,6 +80,8 @@ def test_one_flight_in_pieces_on_a_local_ray_cluster_gives_the_local_model(demo_
     assert len(on_ray["pieces"]) == 3 and sum(on_ray["pieces"]) == local["frames_total"]
     assert on_ray["seam_pairs"] == 2 * sum(range(1, SfmOptions().overlap + 1))
     assert on_ray["loop_pairs"] > 0
+    # each piece matches as the whole flight would (sequential), not as a short flight alone
+    assert {p["matcher"] for p in on_ray["piece_matching"]} == {"sequential"}
     sequential = sum(p["matched_pairs"] for p in on_ray["piece_matching"]) + on_ray["seam_pairs"]
     assert sequential + on_ray["loop_pairs"] >= ray["matching"]["matched_pairs"] >= sequential
     for rep in (local, ray):
