@@ -143,6 +143,10 @@ def run_sfm(
         opts.validate()
     except ValueError as err:
         raise InputError(str(err)) from None
+    if opts.ray:
+        from dronecap.sfm.ray_front import check_address
+
+        check_address(opts.ray)
     ds = open_dataset(frames_path)
     gt = _ground_truth(ds, gt_path)
     if ds.n < MIN_FRAMES:

@@ -34,6 +34,30 @@ from dronecap.sfm.flights import flight_of
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.retrieval import write_loop_pairs
 
+REACH_TIMEOUT = (
+    5.0  # s: a Ray cluster's address must answer within this (else Ray retries for minutes)
+)
+
+
+def check_address(address: str) -> None:
+    """Raise InputError unless a TCP connection to the Ray cluster ``address`` ("HOST:PORT" or
+    "ray://HOST:PORT") opens within :data:`REACH_TIMEOUT`; "" (no Ray), "local" (started here)
+    and "auto" (Ray's own lookup, which fails at once) pass. Ray itself keeps retrying an
+    address that does not answer for minutes."""
+    import socket
+
+    from dronecap.errors import InputError
+
+    if address in ("", "local", "auto"):
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise InputError(f"--ray {address}: give 'local', 'auto', HOST:PORT or ray://HOST:PORT")
+    try:
+        socket.create_connection((host, int(port)), timeout=REACH_TIMEOUT).close()
+    except OSError as err:
+        raise InputError(f"--ray {address}: no Ray cluster answers there ({err})") from None
+
 
 def pieces(names: list[str], size: int) -> list[list[str]]:
     """``names`` (flight order) cut into runs of ``size`` consecutive frames of one flight

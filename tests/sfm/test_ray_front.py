@@ -99,3 +99,24 @@ def test_one_flight_in_pieces_on_a_local_ray_cluster_gives_the_local_model(demo_
     )
     agree = pose_accuracy(b.poses[pick[1]], a.poses[pick[0]])
     assert agree.ate_percent < 0.5 and agree.rot_median_deg < 0.5
+
+
+def test_a_ray_address_that_does_not_answer_is_refused_at_once() -> None:
+    """Ray would retry an address nobody serves for minutes: sfm refuses it in one line."""
+    import socket
+
+    from dronecap.errors import InputError
+    from dronecap.sfm.ray_front import check_address
+
+    with socket.socket() as s:  # a port that was free a moment ago: nobody listens there
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    for bad in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}", "no-port", "host:abc"):
+        with pytest.raises(InputError, match="--ray"):
+            check_address(bad)
+    for fine in ("", "local", "auto"):
+        check_address(fine)
+    with socket.socket() as s:  # a listening port passes
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        check_address(f"127.0.0.1:{s.getsockname()[1]}")
