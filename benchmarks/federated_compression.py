@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import shutil
 import statistics
@@ -273,7 +274,8 @@ def _write(a: argparse.Namespace, rows: list[dict]) -> None:
         lines.append(
             f"| {r['scheme']} | {r['drones']} | {r['variant']} | {r['rounds']} | {r['up']:,.0f} | "
             f"{r['down']:,.0f} | {r['down_max']:,.0f} | {r['wifi']:.2f} | {r['psnr']:.2f} | "
-            f"{vs:+.2f} | {r['psnr'] - r['central']:+.2f} | {r['psnr'] - r['single']:+.2f} | "
+            f"{_signed(vs)} | {_signed(r['psnr'] - r['central'])} | "
+            f"{_signed(r['psnr'] - r['single'])} | "
             f"{r['wall']:.0f} |"
         )
     central = {
@@ -285,12 +287,17 @@ def _write(a: argparse.Namespace, rows: list[dict]) -> None:
         "|---|---:|---:|---|",
     ]
     for (scheme, drones), (c, b, n) in central.items():
-        lines.append(f"| {scheme} | {drones} | {c:.2f} | {b:.2f} {n} |")
+        lines.append(f"| {scheme} | {drones} | {_signed(c, '.2f')} | {_signed(b, '.2f')} {n} |")
     text = "\n".join(lines) + "\n"
     print(text)
     with atomic_output(RESULTS / f"{a.results}.md") as tmp:
         tmp.write_text(text)
     _figure(rows, ref, RESULTS / f"{a.results}.png")
+
+
+def _signed(value: float, fmt: str = "+.2f") -> str:
+    """A table cell: the value, or a dash when its baseline did not run (nan)."""
+    return "—" if math.isnan(value) else format(value, fmt)
 
 
 def _figure(rows: list[dict], ref: dict, path: Path) -> None:
