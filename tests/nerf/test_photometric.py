@@ -123,7 +123,7 @@ def test_learned_gains_and_vignette_match_the_truth_and_render_cleaner(photograp
     scores = {}
     for mode in ("off", "on"):
         tr = Trainer(_cfg(mode), data)
-        tr.train(400)
+        tr.train(600)  # the photometric rate is 2/3 of the model's: 400 steps left the corner
         scores[mode] = tr.evaluate(data)
     learned = torch.log(tr.photometric.gains()).detach().numpy()[:, 0]
     assert np.corrcoef(learned, true_log_gains)[0, 1] > 0.95
