@@ -92,6 +92,25 @@ OPTIONS: dict[str, dict] = {
     "verify 10": {"verify_min_trials": 10},
     # the front end as Ray tasks on this machine: pieces of 150 frames (session 18)
     "ray local": {"ray": "local"},
+    # the merged chunks keep their own points: no re-triangulation, no final adjustment (the
+    # default since session 19); "chunk BA 4" is the default before it
+    "chunk points": {"chunk_ba_iterations": 0},
+    "chunk BA 4": {"chunk_ba_iterations": 4},
+    "overlap 7": {"overlap": 7},
+    # session 19: the cheaper front end (SIFT contrast 0.01, RANSAC floor 10) and variants
+    "front 0.01/10": {"peak_threshold": 0.01, "finer_below": 300, "verify_min_trials": 10},
+    "front + local BA 10": {
+        "peak_threshold": 0.01,
+        "finer_below": 300,
+        "verify_min_trials": 10,
+        "ba_local_max_iterations": 10,
+    },
+    "front + loop period 10": {
+        "peak_threshold": 0.01,
+        "finer_below": 300,
+        "verify_min_trials": 10,
+        "loop_period": 10,
+    },
     # chunked mapping (sfm/chunks.py) above 200 usable frames, pinned as measured
     "chunked": {
         "chunk_above": 200,

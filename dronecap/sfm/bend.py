@@ -9,6 +9,8 @@ essential matrix, or the homography decomposition for planar pairs): independent
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -56,25 +58,33 @@ def rotation_disagreement(database: Path, model: Path, gap: int = 1) -> dict[str
 
     rec = pycolmap.Reconstruction(model)
     regs = sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name)
-    diffs = []
+    jobs = []  # (model rotation, matched keypoints of a and b, cameras of a and b)
     with pycolmap.Database.open(database) as db:
         ids = {im.name: im.image_id for im in db.read_all_images()}
         for a, b in zip(regs[:-gap], regs[gap:], strict=True):
             ia, ib = ids[rec.images[a].name], ids[rec.images[b].name]
             if not db.exists_two_view_geometry(ia, ib):
                 continue
-            r_pair = _two_view_rotation(
-                db,
-                ia,
-                ib,
-                rec.cameras[rec.images[a].camera_id],
-                rec.cameras[rec.images[b].camera_id],
-            )
-            if r_pair is None:
+            m = np.asarray(db.read_two_view_geometry(ia, ib).inlier_matches)
+            if m.shape[0] < 16:
                 continue
             r_a = rec.images[a].cam_from_world().rotation.matrix()
             r_b = rec.images[b].cam_from_world().rotation.matrix()
-            r_model = r_b @ r_a.T  # cam_b from cam_a
+            jobs.append(
+                (
+                    r_b @ r_a.T,  # cam_b from cam_a
+                    np.asarray(db.read_keypoints(ia))[m[:, 0], :2].astype(np.float64),
+                    np.asarray(db.read_keypoints(ib))[m[:, 1], :2].astype(np.float64),
+                    rec.cameras[rec.images[a].camera_id],
+                    rec.cameras[rec.images[b].camera_id],
+                )
+            )
+    # pycolmap's RANSAC releases the GIL: the pairs' fits run on every core
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        fits = list(pool.map(lambda job: _two_view_rotation(*job[1:]), jobs))
+    diffs = []
+    for (r_model, *_), r_pair in zip(jobs, fits, strict=True):
+        if r_pair is not None:
             cos = (np.trace(r_model @ r_pair.T) - 1) / 2
             diffs.append(float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))))
     return verdict(np.array(diffs))
@@ -96,22 +106,18 @@ def verdict(diffs: np.ndarray) -> dict[str, Any]:
     }
 
 
-def _two_view_rotation(db: Any, a: int, b: int, cam_a: Any, cam_b: Any) -> np.ndarray | None:
-    """Rotation [3, 3] of image ``b``'s camera from image ``a``'s, from an essential matrix
-    fitted to the pair's verified matches with the cameras ``cam_a``, ``cam_b``
-    (``pycolmap.Camera``; None with under 16 matches or no fit).
+def _two_view_rotation(
+    kp_a: np.ndarray, kp_b: np.ndarray, cam_a: Any, cam_b: Any
+) -> np.ndarray | None:
+    """Rotation [3, 3] of image b's camera from image a's, from an essential matrix fitted to
+    their verified matches (pixel coordinates ``kp_a``, ``kp_b`` [M, 2], M >= 16) with the
+    cameras ``cam_a``, ``cam_b`` (``pycolmap.Camera``); None when nothing fits.
 
     Always the essential matrix: most pairs of these flights are labelled planar, and the
     stored homography's decomposition is 3-11 deg off on a lego orbit whose true step is 3.5.
     """
     import pycolmap
 
-    g = db.read_two_view_geometry(a, b)
-    m = np.asarray(g.inlier_matches)
-    if m.shape[0] < 16:
-        return None
-    kp_a = np.asarray(db.read_keypoints(a))[m[:, 0], :2].astype(np.float64)
-    kp_b = np.asarray(db.read_keypoints(b))[m[:, 1], :2].astype(np.float64)
     ransac = pycolmap.RANSACOptions()
     ransac.max_error = RANSAC_PX
     ransac.min_num_trials, ransac.max_num_trials = RANSAC_TRIALS

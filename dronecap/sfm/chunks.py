@@ -260,6 +260,36 @@ def adjust_merged(
     }
 
 
+def keep_chunk_points(merged: Any, models: list[Any], out: Path) -> dict[str, dict[str, float]]:
+    """The ``merged`` poses (:func:`merge_poses` of ``models``, same order) with the chunks'
+    own points, neither triangulated again nor adjusted: each point keeps the observations in
+    the frames whose pose came from its chunk (a frame's keypoints then belong to one chunk's
+    points only), and is dropped when fewer than two remain. Writes the model to ``out``;
+    returns {folder: frames, reprojection px}."""
+    import pycolmap
+
+    owner: dict[int, int] = {}
+    for k, rec in enumerate(models):
+        for image_id in rec.reg_image_ids():
+            owner.setdefault(image_id, k)
+    for k, rec in enumerate(models):
+        for point in rec.points3D.values():
+            kept = [e for e in point.track.elements if owner.get(e.image_id) == k]
+            if len(kept) >= 2:
+                track = pycolmap.Track()
+                track.add_elements(kept)
+                merged.add_point3D(point.xyz, track, point.color)
+    merged.update_point_3d_errors()
+    out.mkdir(parents=True, exist_ok=True)
+    merged.write(out)
+    return {
+        str(out): {
+            "frames": merged.num_reg_images(),
+            "reproj": float(merged.compute_mean_reprojection_error()),
+        }
+    }
+
+
 def _drop_bad_points(rec: Any, opts: SfmOptions) -> None:
     """Delete ``rec``'s points observed with more than ``opts.max_reproj_error`` px, seen
     under less than COLMAP's 1.5 deg triangulation angle, or behind a camera."""
@@ -308,7 +338,10 @@ def chunked_map(
     loaded = {k: pycolmap.Reconstruction(m) for k, m in enumerate(models) if m is not None}
     merged, n_merged = merge_poses(list(loaded.values()))
     t_merge = time.process_time()
-    found = adjust_merged(merged, database, image_dir, root / MERGED, opts, refine_camera)
+    if opts.chunk_ba_iterations > 0:
+        found = adjust_merged(merged, database, image_dir, root / MERGED, opts, refine_camera)
+    else:
+        found = keep_chunk_points(merged, list(loaded.values()), root / MERGED)
     record = {
         "frames": [len(c) for c in chunks],
         "registered": [

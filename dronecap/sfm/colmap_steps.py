@@ -214,6 +214,7 @@ def mapper_options(opts: SfmOptions, refine_camera: bool, relaxed: bool = False)
     m.ba_global_frames_ratio = m.ba_global_points_ratio = opts.ba_global_ratio
     m.ba_global_max_num_iterations = opts.ba_global_max_iterations
     m.mapper.ba_local_num_images = opts.ba_local_images
+    m.ba_local_max_num_iterations = opts.ba_local_max_iterations
     m.mapper.ba_global_ignore_redundant_points3D = opts.ba_prune_redundant
     m.ba_global_max_refinements = m.ba_local_max_refinements = opts.ba_refinements
     if opts.time_cap > 0:

@@ -32,16 +32,17 @@ class SfmOptions:
     # upsampling at -2) at finer_peak_threshold: real 160-px footage and white-background
     # orbits yield 150-250 at -1 even at 0.004, and at -2 register without retries (Himax
     # test_2, test_15) and pose more accurately (lego orbit ATE 0.42 -> 0.26 %); textured
-    # flights keep -1, which is 2x faster there (benchmarks/results/sift_octave.md). With
-    # peak_threshold 0.01 use 300 (the first pass then keeps ~440, not 565, keypoints on the
-    # 446-frame corridor). 0: never.
-    finer_below: int = 400
-    # SIFT contrast threshold of the first pass (COLMAP default 0.0067). At 0.01 the 446-frame
-    # corridor keeps 440 instead of 565 keypoints per frame, its sequential matching costs 28
-    # instead of 50 CPU-s and the whole sfm 163 instead of 181 CPU-s (docs/sfm.md "Session
-    # 14"), but on the 3901-frame flight our initial-pair search then found no pair (6 at
-    # 0.004, same flight), so the flight was not chunked: the default stays 0.004.
-    peak_threshold: float = 0.004
+    # flights keep -1, which is 2x faster there (benchmarks/results/sift_octave.md). 300 with
+    # the first pass's 0.01 (it keeps ~440, not 565, keypoints on the 446-frame corridor; at
+    # 0.004 the threshold was 400). 0: never.
+    finer_below: int = 300
+    # SIFT contrast threshold of the first pass (COLMAP default 0.0067). 0.01 since session 19:
+    # with verify_min_trials 10 the 446-frame corridor's matching takes 41 instead of 72 CPU-s
+    # and its sfm 57 instead of 79 s wall on the idle machine, ATE 0.203 vs 0.212 %, rotation
+    # 0.32 vs 0.34 deg (benchmarks/results/sfm_scaling_front2_s19.md). Session 14 kept 0.004
+    # because the 3901-frame flight then had no initial pair; the planar fallback has found
+    # one there since (docs/sfm.md "Session 14", "Session 19").
+    peak_threshold: float = 0.01
     # contrast threshold of the finer re-extraction of sparse frames (0.004 is what sparse
     # footage, Himax and lego, was measured with); matters when peak_threshold is raised
     finer_peak_threshold: float = 0.004
@@ -73,7 +74,9 @@ class SfmOptions:
     # Matches between 160-px video frames are ~99 % inliers, so RANSAC's own stopping rule asks
     # for a handful of trials; the floor was most of the verification time (446-frame corridor,
     # sequential pairs: 61 -> 38 CPU-s at 30, same verified pairs and inliers within 0.02 %).
-    verify_min_trials: int = 30
+    # Session 19: 10 (alone: matching 73 -> 62 CPU-s, same accuracy, idle machine; with the
+    # contrast threshold 0.01, above).
+    verify_min_trials: int = 10
     max_h_inlier_ratio: float = 0.8  # pairs whose homography explains more are called planar
     # ... with the global mapper: planar only when a homography explains strictly more matches
     # than the essential matrix. GLOMAP takes each pair's relative pose from its stored model, and
@@ -108,6 +111,7 @@ class SfmOptions:
     ba_global_max_iterations: int = 20  # solver iterations of one global BA (-1: COLMAP's)
     ba_refinements: int = 1  # BA + re-triangulation rounds, global and local (COLMAP 5 / 2)
     ba_local_images: int = 6  # frames in a local bundle adjustment (COLMAP's default 6)
+    ba_local_max_iterations: int = -1  # solver iterations of one local BA (-1: COLMAP's)
     # global BA skips points that add no coverage of their frames (COLMAP's pruning option)
     ba_prune_redundant: bool = False
     # "incremental" (COLMAP's incremental mapper) or "global" (GLOMAP, guarded: a bent or
@@ -120,10 +124,13 @@ class SfmOptions:
     chunk_above: int = 300
     chunk_frames: int = 150
     chunk_overlap: int = 40
-    # iterations of the merged model's bundle adjustment. The chunks' poses are already good:
-    # on the 446-frame corridor 1 / 4 / 10 iterations give ATE 0.197 / 0.189 / 0.188 %,
-    # rotation 0.43 / 0.43 / 0.42 deg at 5 / 9 / 29 CPU-s (docs/sfm.md "Session 13").
-    chunk_ba_iterations: int = 4
+    # iterations of the merged model's bundle adjustment after triangulating its points again
+    # from the database; 0: neither, the merged model keeps the chunks' own points
+    # (chunks.keep_chunk_points). The chunks' poses are already good: on the 446-frame
+    # corridor 1 / 4 / 10 iterations gave ATE 0.197 / 0.189 / 0.188 % (session 13), and in one
+    # run of session 19 (idle machine) 4 iterations 0.200 % / 0.37 deg against 0's 0.214 % /
+    # 0.30 deg, mapping 51 -> 24 s wall, the whole sfm 111 -> 84 s (docs/sfm.md "Session 19").
+    chunk_ba_iterations: int = 0
     # Bundle adjustment inside the chunks' mappers (the merged model's final adjustment
     # couples them): global BA when the chunk grew 3x (not 1.5x), at most 10 iterations,
     # redundant points skipped. Session 14, a 141-frame chunk of the 446-frame corridor mapped
@@ -183,8 +190,8 @@ class SfmOptions:
             raise ValueError("ba_refinements must be >= 1 and time_cap >= 0")
         if self.chunk_above < 0 or not 1 <= self.chunk_overlap < self.chunk_frames / 2:
             raise ValueError("chunk_above must be >= 0 and chunk_overlap in [1, chunk_frames / 2)")
-        if min(self.chunk_ba_iterations, self.chunk_workers, self.verify_min_trials) < 1:
-            raise ValueError("chunk_ba_iterations, chunk_workers, verify_min_trials must be >= 1")
+        if min(self.chunk_workers, self.verify_min_trials) < 1 or self.chunk_ba_iterations < 0:
+            raise ValueError("chunk_workers, verify_min_trials >= 1 and chunk_ba_iterations >= 0")
         if min(self.max_reproj_error, self.abs_pose_max_error, self.tri_max_angle_error) <= 0:
             raise ValueError("reprojection, absolute-pose and angle thresholds must be > 0")
 

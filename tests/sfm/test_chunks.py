@@ -5,11 +5,20 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+import pycolmap
 import pytest
 
 from dronecap.datasets.format import write_dataset
 from dronecap.sfm.blender_flight import blender_flight
-from dronecap.sfm.chunks import chunk_names, chunk_threads, mapping_chains, start_chunk
+from dronecap.sfm.chunks import (
+    chunk_names,
+    chunk_threads,
+    keep_chunk_points,
+    mapping_chains,
+    merge_poses,
+    start_chunk,
+)
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.pipeline import run_sfm
 
@@ -89,7 +98,7 @@ def test_only_long_single_flights_are_chunked():
     assert not opts.chunked(opts.chunk_above, n_drones=1)  # today's path up to the threshold
     assert not opts.chunked(4000, n_drones=4)  # a swarm's flights share no chunk frames
     assert not SfmOptions(chunk_above=0).chunked(4000, n_drones=1)  # 0: never
-    bad_ones = ({"chunk_overlap": 0}, {"chunk_overlap": 75}, {"chunk_ba_iterations": 0})
+    bad_ones = ({"chunk_overlap": 0}, {"chunk_overlap": 75}, {"chunk_ba_iterations": -1})
     for bad in (*bad_ones, {"chunk_workers": 0}, {"verify_min_trials": 0}):
         with pytest.raises(ValueError):
             SfmOptions(**bad).validate()
@@ -107,6 +116,44 @@ def test_the_chunks_mappers_use_the_chunk_bundle_adjustment_and_nothing_else_cha
     }
     with pytest.raises(ValueError):
         SfmOptions(chunk_ba_global_ratio=1.0).validate()
+
+
+def _chunk_model(image_ids: list[int], tracks: list[list[int]]) -> pycolmap.Reconstruction:
+    """A chunk's model: a camera looking down +z from x = image id, 4 keypoints per frame, and
+    one point per track (track = image ids; the point is keypoint ``p`` of each, p its index)."""
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera.create_from_model_name(1, "PINHOLE", 100.0, 64, 64)
+    )
+    for i in image_ids:
+        image = pycolmap.Image(
+            name=f"{i:05d}.png", keypoints=[np.array([8.0 * k, 8.0]) for k in range(4)],
+            camera_id=1, image_id=i,
+        )  # fmt: skip
+        rec.add_image_with_trivial_frame(
+            image, pycolmap.Rigid3d(pycolmap.Rotation3d(), [-float(i), 0.0, 0.0])
+        )
+    for p, track in enumerate(tracks):
+        t = pycolmap.Track()
+        t.add_elements([pycolmap.TrackElement(i, p) for i in track])
+        rec.add_point3D(np.array([float(p), 0.0, 5.0]), t)
+    return rec
+
+
+def test_merged_chunks_keep_their_points_in_the_frames_they_posed(tmp_path):
+    """Frame 3 is in both chunks and keeps chunk A's pose and points: B's point seen in 3 and 4
+    loses frame 3 and, seen once, is dropped; B's point seen in 3, 4, 5 keeps 4 and 5."""
+    a = _chunk_model([1, 2, 3], [[1, 2, 3], [2, 3]])
+    b = _chunk_model([3, 4, 5], [[3, 4, 5], [3, 4]])
+    merged, n = merge_poses([a, b])
+    record = keep_chunk_points(merged, [a, b], tmp_path / "m")
+    rec = pycolmap.Reconstruction(tmp_path / "m")
+    assert n == 5 and record[str(tmp_path / "m")]["frames"] == 5
+    tracks = sorted(sorted(e.image_id for e in p.track.elements) for p in rec.points3D.values())
+    assert tracks == [[1, 2, 3], [2, 3], [4, 5]]
+    seen_in_3 = [e.point2D_idx for p in rec.points3D.values() for e in p.track.elements
+                 if e.image_id == 3]  # fmt: skip
+    assert sorted(seen_in_3) == [0, 1]  # chunk A's keypoints only, each once
 
 
 def test_a_chunked_lego_flight_is_one_straight_accurate_model(lego_dir, tmp_path):
