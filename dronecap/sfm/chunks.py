@@ -14,7 +14,11 @@ less often than an unchunked flight's (``SfmOptions.for_chunks``). The chunks af
 chunk and those before it are two independent chains, mapped in two threads
 (``opts.chunk_workers``; the same models as one after another), the cores shared among the
 chains still mapping (:func:`chunk_threads`). The chunks' poses are then put into one model
-(:func:`merge_poses`: a frame keeps the pose of the first chunk that registered it), its points
+(:func:`merge_poses`: a frame keeps the pose of the first chunk that registered it). By default
+(``opts.chunk_ba_iterations`` 0, since session 19) the merged model keeps the chunks' own points
+(:func:`keep_chunk_points`): the seeds already hold every chunk in its neighbour's frame, and
+on the 446-frame corridor the merge took 0.3 instead of 26 CPU-s at ATE 0.214 vs 0.200 %,
+rotation 0.30 vs 0.37 deg. With iterations > 0 (:func:`adjust_merged`) its points are
 triangulated again from the database with those poses, and ONE bundle adjustment of the whole
 model refines poses and points (the re-triangulated points' tracks cross the chunk boundaries:
 keeping each chunk's own points instead, the adjustment moved nothing, ATE 0.57 -> 0.57 %).
