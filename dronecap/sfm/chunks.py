@@ -49,8 +49,8 @@ from pathlib import Path
 from typing import Any
 
 from dronecap.sfm.colmap_steps import incremental_map, map_from_pairs, mapper_options
-from dronecap.sfm.initial_pair import initial_pairs
 from dronecap.sfm.options import SfmOptions
+from dronecap.sfm.wide_pairs import start_pairs
 
 CHUNKS = "chunks"  # work-folder subfolder of the chunks' models
 MERGED = "chunked"  # work-folder subfolder of the merged, adjusted model
@@ -376,7 +376,7 @@ def map_in_chunks(
     chunk's frames; fills ``out``'s init_pair and chunks (the report's records)."""
     db, images = root / "database.db", root / "images"
     chunks = chunk_names(usable, opts.chunk_frames, opts.chunk_overlap)
-    pairs, info = initial_pairs(db, opts)
+    pairs, info = start_pairs(db, root, opts, chunks[(len(chunks) - 1) // 2])
     k = start_chunk(chunks, pairs)
     out["chunks"] = {"frames": [len(c) for c in chunks], "start": k}
     mine = [p for p in pairs if k is not None and set(p[1]["frames"]) <= set(chunks[k])]

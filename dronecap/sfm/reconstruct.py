@@ -29,11 +29,11 @@ from dronecap.sfm.chunks import map_in_chunks
 from dronecap.sfm.colmap_steps import incremental_map, map_from_pairs, match
 from dronecap.sfm.features import MIN_KEYPOINTS, extract_finer_when_sparse
 from dronecap.sfm.flights import image_names
-from dronecap.sfm.initial_pair import initial_pairs
 from dronecap.sfm.isolate import run_isolated
 from dronecap.sfm.links import separate_unlinked
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.repair import jump_frames, refine_camera_of, remap_jumps
+from dronecap.sfm.wide_pairs import start_pairs
 
 GLOBAL_MIN_FRACTION = 0.99  # a global model is kept only with this share of the usable frames
 TINY_MODEL = 0.5  # our start registered under this fraction of usable frames: also try COLMAP's
@@ -97,9 +97,7 @@ def colmap_job(
         found = map_in_chunks(out, root, usable, opts, refine_camera, on_register, TINY_MODEL)
         times["map_chunks"] = time.perf_counter() - t
     if not found:
-        found = _incremental(
-            out, root, opts, refine_camera, on_register, len(usable), deadline, phase
-        )
+        found = _incremental(out, root, opts, refine_camera, on_register, usable, deadline, phase)
     out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
     if not found:
         out["stopped"] = NO_START
@@ -155,17 +153,18 @@ def _incremental(
     opts: SfmOptions,
     refine_camera: bool,
     on_register: Callable[[int], None],
-    n_usable: int,
+    usable: list[str],
     deadline: float | None,
     phase: Callable[..., float],
 ) -> dict[str, dict[str, float]]:
-    """Incremental mapping from our initial pairs, then from COLMAP's own start when ours
-    stays tiny (or ``opts.init_trials`` > 1). Returns the models found; fills ``out``'s
-    init_pair, times and, when the time cap passed, stopped."""
+    """Incremental mapping of the ``usable`` frames from our initial pairs (wide pairs matched
+    for them when the flight's own are too narrow: :mod:`wide_pairs`), then from COLMAP's own
+    start when ours stays tiny (or ``opts.init_trials`` > 1). Returns the models found; fills
+    ``out``'s init_pair, times and, when the time cap passed, stopped."""
     db, images, times = root / "database.db", root / "images", out["times"]
     t = phase("map")
-    pairs, info = initial_pairs(db, opts)
-    enough = TINY_MODEL * n_usable
+    pairs, info = start_pairs(db, root, opts, usable)
+    enough = TINY_MODEL * len(usable)
     found, tried = map_from_pairs(db, images, root, opts, refine_camera, on_register, pairs, enough)
     out["init_pair"] = {
         **info,
