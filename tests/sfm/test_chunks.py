@@ -12,6 +12,7 @@ import pytest
 from dronecap.datasets.format import write_dataset
 from dronecap.sfm.blender_flight import blender_flight
 from dronecap.sfm.chunks import (
+    chunk_mapped,
     chunk_names,
     chunk_threads,
     keep_chunk_points,
@@ -90,6 +91,15 @@ def test_a_chain_left_alone_gets_all_the_cores(monkeypatch):
     assert [chunk_threads(n) for n in (2, 1, 0)] == [4, 8, 8]
     monkeypatch.setattr("os.cpu_count", lambda: 1)
     assert chunk_threads(2) == 1
+
+
+def test_a_chunk_counts_as_mapped_only_with_most_of_its_new_frames():
+    """150 frames, 40 from the seed: 41 registered (one new frame) does not carry the chain on,
+    the 129 of a chunk that lost a few does."""
+    assert not chunk_mapped(41, 150, 40)
+    assert not chunk_mapped(40, 150, 40)
+    assert chunk_mapped(129, 150, 40) and chunk_mapped(150, 150, 40)
+    assert chunk_mapped(95, 150, 40) and not chunk_mapped(94, 150, 40)  # half of the 110 new
 
 
 def test_only_long_single_flights_are_chunked():
