@@ -59,7 +59,11 @@ class SfmOptions:
     # the matching of its pairs (the index alone took 55 s), ATE 0.15 % / rotation 0.36 deg;
     # 124 frames ATE 0.12 % vs 0.15 %, 0.34 vs 0.48 deg (benchmarks/results/sfm_scaling.md)
     loop_pairs: str = "words"
-    loop_period: int = 5  # query the visual index with every this-many-th frame
+    # query the visual index with every this-many-th frame. 10 since session 19 (was 5): half
+    # the loop pairs; one run each, 5 -> 10: 446-frame corridor 57 -> 50 s, ATE 0.203 -> 0.191 %;
+    # 124 / 223 kept: ATE 0.128 / 0.158 -> 0.144 / 0.159 %, rotation 0.37 / 0.27 -> 0.36 /
+    # 0.31 deg; lego orbit video (197 frames, two passes): 0.264 -> 0.237 %, 0.43 -> 0.40 deg
+    loop_period: int = 10
     loop_num_images: int = 15  # frames retrieved per query
     visual_words: int = 512  # size of the flight's own visual vocabulary (upper bound)
     cross_num_images: int = 5  # a swarm: frames of other drones' flights matched per frame
