@@ -44,7 +44,9 @@ RANSAC_TRIALS = (100, 1000)
 RANSAC_SEED = 0  # fixed: the same model and database always get the same record
 
 
-def rotation_disagreement(database: Path, model: Path, gap: int = 1) -> dict[str, Any]:
+def rotation_disagreement(
+    database: Path, model: Path, gap: int = 1, threads: int = -1
+) -> dict[str, Any]:
     """Compare each pair of registered frames ``gap`` apart (1: consecutive; flight order =
     image name order) that has a verified two-view geometry.
 
@@ -79,8 +81,9 @@ def rotation_disagreement(database: Path, model: Path, gap: int = 1) -> dict[str
                     rec.cameras[rec.images[b].camera_id],
                 )
             )
-    # pycolmap's RANSAC releases the GIL: the pairs' fits run on every core
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+    # pycolmap's RANSAC releases the GIL: the pairs' fits run on ``threads`` cores (-1: all)
+    workers = threads if threads > 0 else (os.cpu_count() or 1)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
         fits = list(pool.map(lambda job: _two_view_rotation(*job[1:]), jobs))
     diffs = []
     for (r_model, *_), r_pair in zip(jobs, fits, strict=True):

@@ -53,7 +53,7 @@ from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.wide_pairs import start_pairs
 
 CHUNKS = "chunks"  # work-folder subfolder of the chunks' models
-MERGED = "chunked"  # work-folder subfolder of the merged, adjusted model
+MERGED = "chunked"  # work-folder subfolder of the merged model
 MIN_NEW_SHARE = 0.5  # a chunk is mapped when it registered this share of its non-seed frames
 MIN_TRI_ANGLE = 1.5  # deg: a merged point seen under less is dropped (COLMAP's filter default)
 

@@ -109,11 +109,7 @@ def match(
         t = time.perf_counter()
         pair_file = work / "cross_flight_pairs.txt"
         n_pairs = write_cross_flight_pairs(database, pair_file, opts.cross_num_images, opts.seed)
-        imported = pycolmap.ImportedPairingOptions()
-        imported.match_list_path = str(pair_file)
-        pycolmap.match_image_pairs(
-            database, **common, pairing_options=imported, device=pycolmap.Device.cpu
-        )
+        match_listed(database, pair_file, opts)
         info["cross_flight_pairs"] = n_pairs
         info["cross_flight_seconds"] = round(time.perf_counter() - t, 3)
     with pycolmap.Database.open(database) as db:
@@ -143,6 +139,19 @@ def matching_options(opts: SfmOptions) -> dict[str, Any]:
     verify.ransac.min_num_trials = opts.verify_min_trials
     verify.max_H_inlier_ratio = opts.resolved_max_h_ratio()
     return {"matching_options": matching, "verification_options": verify}
+
+
+def match_listed(database: Path, pair_file: Path, opts: SfmOptions) -> None:
+    """Match and verify the image pairs listed in ``pair_file`` (a line "name_a name_b" each)
+    into ``database``, with :func:`matching_options` of ``opts``; pairs matched before are
+    left as they are."""
+    import pycolmap
+
+    imported = pycolmap.ImportedPairingOptions()
+    imported.match_list_path = str(pair_file)
+    pycolmap.match_image_pairs(
+        database, **matching_options(opts), pairing_options=imported, device=pycolmap.Device.cpu
+    )
 
 
 def _match_sequential(
@@ -187,11 +196,7 @@ def _match_sequential(
             opts.overlap + 1,
             opts.seed,
         )
-        imported = pycolmap.ImportedPairingOptions()
-        imported.match_list_path = str(pair_file)
-        pycolmap.match_image_pairs(
-            database, **common, pairing_options=imported, device=pycolmap.Device.cpu
-        )
+        match_listed(database, pair_file, opts)
         info["loop_seconds"] = round(time.perf_counter() - t, 3)
         info["loop_cpu_seconds"] = round(time.process_time() - c, 3)
 

@@ -64,8 +64,10 @@ def global_map(
         best = max(found, key=lambda j: found[j]["frames"])
         record.update(
             frames=found[best]["frames"],
-            bend_check=rotation_disagreement(database, Path(best)),
-            wide_check=rotation_disagreement(database, Path(best), max(opts.overlap, 1)),
+            bend_check=rotation_disagreement(database, Path(best), threads=opts.num_threads),
+            wide_check=rotation_disagreement(
+                database, Path(best), max(opts.overlap, 1), opts.num_threads
+            ),
         )
     return found, record
 

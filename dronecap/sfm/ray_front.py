@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from dronecap.sfm.colmap_steps import match, matching_options
+from dronecap.sfm.colmap_steps import match, match_listed
 from dronecap.sfm.features import extract_finer_when_sparse, import_images
 from dronecap.sfm.flights import flight_of
 from dronecap.sfm.options import SfmOptions
@@ -198,8 +198,6 @@ def _match_between_pieces(
 ) -> None:
     """Match and verify, in ``database``, the :func:`seam_pairs` of ``parts`` and the loop
     pairs of every flight (when ``opts`` asks for loops); fills ``summary``."""
-    import pycolmap
-
     t = time.perf_counter()
     pair_file = database.parent / "between_pieces_pairs.txt"
     seams = seam_pairs(parts, opts.overlap)
@@ -213,9 +211,5 @@ def _match_between_pieces(
         with pair_file.open("a") as f:
             f.write(loops.read_text())
     if pair_file.stat().st_size:
-        imported = pycolmap.ImportedPairingOptions()
-        imported.match_list_path = str(pair_file)
-        pycolmap.match_image_pairs(
-            database, **matching_options(opts), pairing_options=imported, device=pycolmap.Device.cpu
-        )
+        match_listed(database, pair_file, opts)
     summary["between_pieces_seconds"] = round(time.perf_counter() - t, 3)

@@ -112,7 +112,7 @@ def colmap_job(
         )
         times["unlinked"] = time.perf_counter() - t
     t = phase("bend check", size)
-    out["bend_check"] = rotation_disagreement(db, Path(out["best"]))
+    out["bend_check"] = rotation_disagreement(db, Path(out["best"]), threads=opts.num_threads)
     times["bend_check"] = time.perf_counter() - t
     if refine_after:
         t = phase("refine camera", size)

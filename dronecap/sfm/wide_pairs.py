@@ -18,7 +18,8 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from dronecap.sfm.colmap_steps import matching_options
+from dronecap.sfm.colmap_steps import match_listed
+from dronecap.sfm.flights import flight_of
 from dronecap.sfm.initial_pair import initial_pairs
 from dronecap.sfm.options import SfmOptions
 
@@ -29,14 +30,19 @@ WIDE_ANCHORS = 8  # anchors spread evenly over the frames the start may use
 def wide_pairs(frames: list[str]) -> list[tuple[str, str]]:
     """Pairs of ``frames`` (flight order): :data:`WIDE_ANCHORS` anchors spread over the frames
     that have a partner :data:`WIDE_GAPS` [0] later, each with the frames every gap later that
-    exist."""
+    exist and belong to the same drone's flight (a swarm's names run flight after flight)."""
     room = len(frames) - WIDE_GAPS[0]
     if room <= 0:
         return []
     anchors = sorted(
         {round(i * (room - 1) / max(1, WIDE_ANCHORS - 1)) for i in range(WIDE_ANCHORS)}
     )
-    return [(frames[a], frames[a + g]) for a in anchors for g in WIDE_GAPS if a + g < len(frames)]
+    return [
+        (frames[a], frames[a + g])
+        for a in anchors
+        for g in WIDE_GAPS
+        if a + g < len(frames) and flight_of(frames[a]) == flight_of(frames[a + g])
+    ]
 
 
 def start_pairs(
@@ -47,8 +53,6 @@ def start_pairs(
     start chunk's, or the flight's) are matched into the database (pair list in ``work``) and
     the search runs again. The search record gets ``wide_pairs``: the pairs matched (0: none
     needed)."""
-    import pycolmap
-
     pairs, info = initial_pairs(database, opts)
     if any(p[1]["tri_angle_deg"] >= opts.init_min_tri_angle / 2 for p in pairs):
         return pairs, {**info, "wide_pairs": 0}
@@ -57,14 +61,7 @@ def start_pairs(
         return pairs, {**info, "wide_pairs": 0}
     pair_file = work / "wide_pairs.txt"
     pair_file.write_text("".join(f"{a} {b}\n" for a, b in wanted))
-    imported = pycolmap.ImportedPairingOptions()
-    imported.match_list_path = str(pair_file)
     essential_first = dataclasses.replace(opts, max_h_inlier_ratio=opts.global_max_h_inlier_ratio)
-    pycolmap.match_image_pairs(
-        database,
-        **matching_options(essential_first),
-        pairing_options=imported,
-        device=pycolmap.Device.cpu,
-    )
+    match_listed(database, pair_file, essential_first)
     pairs, info = initial_pairs(database, opts)
     return pairs, {**info, "wide_pairs": len(wanted)}

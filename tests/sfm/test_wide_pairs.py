@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import cv2
+import numpy as np
 import pycolmap
 
 from dronecap.sfm.blender_flight import blender_flight
 from dronecap.sfm.features import extract
+from dronecap.sfm.flights import image_names
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.wide_pairs import WIDE_ANCHORS, WIDE_GAPS, start_pairs, wide_pairs
 
@@ -22,6 +24,9 @@ def test_wide_pairs_spread_anchors_and_stay_inside_the_frames():
     assert wide_pairs(names[: WIDE_GAPS[0]]) == []  # no frame has a partner that far
     few = wide_pairs(names[:20])
     assert few and all(int(b[:5]) - int(a[:5]) == WIDE_GAPS[0] for a, b in few)
+    swarm = image_names(np.repeat([0, 1], 20))  # two drones' flights, one after the other
+    paired = wide_pairs(swarm)
+    assert paired and all(a.split("/")[0] == b.split("/")[0] for a, b in paired)
 
 
 def test_narrow_starts_get_wide_pairs_matched_and_good_ones_do_not(lego_dir, tmp_path):
