@@ -111,6 +111,13 @@ OPTIONS: dict[str, dict] = {
         "verify_min_trials": 10,
         "loop_period": 10,
     },
+    # session 20: the mapper maps a long flight's keyframes only (sfm/keyframes.py, default
+    # 2 px of median motion between keyframes); off = session 19's default
+    "keyframes off": {"keyframe_flow": 0},
+    "keyframes 4 px": {"keyframe_flow": 4},
+    "keyframes 1 px": {"keyframe_flow": 1},
+    "keyframes 3 px": {"keyframe_flow": 3},
+    "keyframes, chunks above 200": {"chunk_above": 200},
     # chunked mapping (sfm/chunks.py) above 200 usable frames, pinned as measured
     "chunked": {
         "chunk_above": 200,
@@ -180,6 +187,8 @@ def run_one(frames: Path, out: Path, overrides: dict) -> dict:
         "map (colmap start)",
         "extend",
         "re-register jumps",
+        "keyframes",
+        "register the other frames",
     )
     return {
         "kept": rep["frames_total"],
@@ -201,6 +210,8 @@ def run_one(frames: Path, out: Path, overrides: dict) -> dict:
                 "map_colmap_start",
                 "extend",
                 "remap_jumps",
+                "keyframes",
+                "register_rest",
             )
         ),
         "map_cpu": sum(c.get(k, 0.0) for k in mapping),

@@ -135,6 +135,14 @@ class SfmOptions:
     # run of session 19 (idle machine) 4 iterations 0.200 % / 0.37 deg against 0's 0.214 % /
     # 0.30 deg, mapping 51 -> 24 s wall, the whole sfm 111 -> 84 s (docs/sfm.md "Session 19").
     chunk_ba_iterations: int = 0
+    # A single flight of at least keyframes_above usable frames maps its keyframes only: the
+    # next keyframe is the furthest frame (within `overlap`) whose matches moved at most
+    # keyframe_flow px from the last; the other frames are then registered into their model
+    # without bundle adjustment (sfm/keyframes.py); keyframe_flow 0: every frame is mapped.
+    # The 3901-frame flight (`simulate --frames 17500`, consecutive frames 0.39 px apart):
+    # 449 keyframes, mapping 79 s in all, ATE 0.27 % (docs/sfm.md "Session 20").
+    keyframe_flow: float = 2.0
+    keyframes_above: int = 300
     # Bundle adjustment inside the chunks' mappers (the merged model's final adjustment
     # couples them): global BA when the chunk grew 3x (not 1.5x), at most 10 iterations,
     # redundant points skipped. Session 14, a 141-frame chunk of the 446-frame corridor mapped
@@ -170,6 +178,8 @@ class SfmOptions:
             raise ValueError("init_max_forward_motion must be in (0, 1]")
         if self.loop_pairs not in LOOP_PAIRS or self.mapper not in MAPPERS:
             raise ValueError(f"loop_pairs must be one of {LOOP_PAIRS}, mapper one of {MAPPERS}")
+        if self.keyframe_flow < 0:
+            raise ValueError(f"keyframe_flow must be >= 0 px, got {self.keyframe_flow}")
         if self.ba_local_images < 2:
             raise ValueError(f"ba_local_images must be at least 2, got {self.ba_local_images}")
         if self.matcher not in MATCHERS:

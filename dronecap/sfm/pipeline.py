@@ -93,6 +93,7 @@ def build_report(res: ColmapResult, ds: Dataset, registered: np.ndarray) -> dict
         "init_pair": summary.get("init_pair"),
         "global_mapper": summary.get("global_mapper"),
         "chunks": summary.get("chunks"),
+        "keyframes": summary.get("keyframes"),
         "bend_check": summary.get("bend_check"),
         "pose_jumps_remapped": summary.get("pose_jumps_remapped"),
         "keypoints_per_frame_median": float(np.median(list(keypoints.values())))

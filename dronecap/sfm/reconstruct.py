@@ -30,6 +30,7 @@ from dronecap.sfm.colmap_steps import incremental_map, map_from_pairs, match
 from dronecap.sfm.features import MIN_KEYPOINTS, extract_finer_when_sparse
 from dronecap.sfm.flights import image_names
 from dronecap.sfm.isolate import run_isolated
+from dronecap.sfm.keyframes import REST, choose_keyframes, register_rest
 from dronecap.sfm.links import separate_unlinked
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.repair import jump_frames, refine_camera_of, remap_jumps
@@ -86,18 +87,24 @@ def colmap_job(
     def on_register(k: int) -> None:
         emit(("registered", k))
 
+    mapped = _keyframes(out, root, usable, opts, n_drones, phase)
     opts = _capped(opts, deadline)
     found = {}
     if opts.mapper == "global":
         t = phase("map global")
         found = _global_first(out, root, opts, refine_camera, len(usable))
         times["map_global"] = time.perf_counter() - t
-    if not found and opts.chunked(len(usable), n_drones):
+    if not found and opts.chunked(len(usable), n_drones):  # a long flight's keyframes too
         t = phase("map chunks")
-        found = map_in_chunks(out, root, usable, opts, refine_camera, on_register, TINY_MODEL)
+        found = map_in_chunks(out, root, mapped, opts, refine_camera, on_register, TINY_MODEL)
         times["map_chunks"] = time.perf_counter() - t
     if not found:
-        found = _incremental(out, root, opts, refine_camera, on_register, usable, deadline, phase)
+        found = _incremental(out, root, opts, refine_camera, on_register, mapped, deadline, phase)
+    if found and len(mapped) < len(usable):
+        best = max(found, key=lambda k: (found[k]["frames"], -found[k]["reproj"]))
+        t = phase("register the other frames", found[best]["frames"])
+        found = register_rest(db, Path(best), root / REST, usable, opts, refine_camera, on_register)
+        times["register_rest"] = time.perf_counter() - t
     out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
     if not found:
         out["stopped"] = NO_START
@@ -129,6 +136,26 @@ def _cpu_since(cpu: dict[str, float], last: list[Any], name: str | None) -> None
     if last[0] is not None:
         cpu[last[0]] = round(cpu.get(last[0], 0.0) + now - last[1], 3)
     last[0], last[1] = name, now
+
+
+def _keyframes(
+    out: dict[str, Any],
+    root: Path,
+    usable: list[str],
+    opts: SfmOptions,
+    n_drones: int,
+    phase: Callable[..., float],
+) -> list[str]:
+    """The frames the mapper maps: a long single flight's keyframes (:mod:`keyframes`, record in
+    ``out["keyframes"]``), else all ``usable`` frames."""
+    if opts.keyframe_flow <= 0 or n_drones > 1 or len(usable) < opts.keyframes_above:
+        return usable
+    if opts.mapper == "global":
+        return usable
+    t = phase("keyframes")
+    mapped, out["keyframes"] = choose_keyframes(root / "database.db", root, usable, opts)
+    out["times"]["keyframes"] = time.perf_counter() - t
+    return mapped
 
 
 def _global_first(
@@ -165,7 +192,9 @@ def _incremental(
     t = phase("map")
     pairs, info = start_pairs(db, root, opts, usable)
     enough = TINY_MODEL * len(usable)
-    found, tried = map_from_pairs(db, images, root, opts, refine_camera, on_register, pairs, enough)
+    found, tried = map_from_pairs(
+        db, images, root, opts, refine_camera, on_register, pairs, enough, usable
+    )
     out["init_pair"] = {
         **info,
         "tried": tried,
@@ -178,7 +207,9 @@ def _incremental(
     elif ours < enough or opts.init_trials > 1:  # COLMAP's own start as well
         opts = _capped(opts, deadline)
         t = phase("map (colmap start)")
-        alt = incremental_map(db, images, root / ALT_MODELS, opts, refine_camera, on_register)
+        alt = incremental_map(
+            db, images, root / ALT_MODELS, opts, refine_camera, on_register, image_names=usable
+        )
         times["map_colmap_start"] = time.perf_counter() - t
         found.update(alt)
     return found
