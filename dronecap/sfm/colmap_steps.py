@@ -141,6 +141,20 @@ def matching_options(opts: SfmOptions) -> dict[str, Any]:
     return {"matching_options": matching, "verification_options": verify}
 
 
+def verify_again(database: Path, opts: SfmOptions) -> None:
+    """Replace the two-view geometry of every matched pair in ``database`` by a new
+    verification with ``opts``' thresholds and planar label (:func:`matching_options`); the
+    matches stay."""
+    import pycolmap
+
+    with pycolmap.Database.open(database) as db:
+        db.clear_two_view_geometries()
+    verifier = pycolmap.GeometricVerifierOptions()
+    verifier.num_threads = opts.num_threads
+    verify = matching_options(opts)["verification_options"]
+    pycolmap.geometric_verification(database, verifier, two_view_geometry_options=verify)
+
+
 def match_listed(database: Path, pair_file: Path, opts: SfmOptions) -> None:
     """Match and verify the image pairs listed in ``pair_file`` (a line "name_a name_b" each)
     into ``database``, with :func:`matching_options` of ``opts``; pairs matched before are
