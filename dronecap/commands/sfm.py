@@ -41,6 +41,10 @@ OPTION_HELP = {
     "mapper": "incremental | global (GLOMAP, kept only when complete and not bent)",
     "chunk_above": "a single flight of more usable frames than this is mapped in overlapping "
     "chunks, merged and bundle-adjusted once (0: never)",
+    "keyframe_flow": "a long single flight maps only frames whose matches moved up to this many "
+    "px from the last one mapped, then registers the others without bundle adjustment (0: map "
+    "every frame)",
+    "keyframes_above": "flights of fewer usable frames than this map every frame",
     "quadratic_overlap": "sequential: pair frame i with i+2^k (COLMAP default) instead of "
     "i+1..i+overlap",
 }

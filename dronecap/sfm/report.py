@@ -127,6 +127,12 @@ def format_report(report: dict[str, Any]) -> str:
     lines += _camera_lines(report.get("camera") or {})
     lines += drone_lines(report)
     lines += _initial_pair_lines(report.get("init_pair") or {})
+    kf = report.get("keyframes")
+    if kf and kf["keyframes"] < kf["frames"]:
+        lines.append(
+            f"  keyframes: {kf['keyframes']} of {kf['frames']} frames mapped (up to "
+            f"{kf['flow_px']:g} px apart), the others registered into their model"
+        )
     attempts = report.get("attempts") or []
     if len(attempts) > 1:
         tried = "; ".join(
