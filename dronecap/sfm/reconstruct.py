@@ -101,10 +101,7 @@ def colmap_job(
     if not found:
         found = _incremental(out, root, opts, refine_camera, on_register, mapped, deadline, phase)
     if found and len(mapped) < len(usable):
-        best = max(found, key=lambda k: (found[k]["frames"], -found[k]["reproj"]))
-        t = phase("register the other frames", found[best]["frames"])
-        found = register_rest(db, Path(best), root / REST, usable, opts, refine_camera, on_register)
-        times["register_rest"] = time.perf_counter() - t
+        found = _register_rest(out, root, found, usable, opts, refine_camera, on_register, phase)
     out["models"] = {str(Path(k).relative_to(root)): v for k, v in found.items()}
     if not found:
         out["stopped"] = NO_START
@@ -156,6 +153,26 @@ def _keyframes(
     mapped, out["keyframes"] = choose_keyframes(root / "database.db", root, usable, opts)
     out["times"]["keyframes"] = time.perf_counter() - t
     return mapped
+
+
+def _register_rest(
+    out: dict[str, Any],
+    root: Path,
+    found: dict[str, dict[str, float]],
+    usable: list[str],
+    opts: SfmOptions,
+    refine_camera: bool,
+    on_register: Callable[[int], None],
+    phase: Callable[..., float],
+) -> dict[str, dict[str, float]]:
+    """The keyframes' best model among ``found`` with every other ``usable`` frame registered
+    into it (:func:`dronecap.sfm.keyframes.register_rest`)."""
+    best = max(found, key=lambda k: (found[k]["frames"], -found[k]["reproj"]))
+    t = phase("register the other frames", found[best]["frames"])
+    db = root / "database.db"
+    found = register_rest(db, Path(best), root / REST, usable, opts, refine_camera, on_register)
+    out["times"]["register_rest"] = time.perf_counter() - t
+    return found
 
 
 def _global_first(
