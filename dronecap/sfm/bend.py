@@ -59,7 +59,8 @@ def rotation_disagreement(
     A pair over :data:`BENT_MAX_DEG` is left out of the record when both pairs that span it
     (:func:`_spanned`) agree: a fold turns every pair across it and one frame posed wrong
     turns one of them, while one wrong two-view fit (the 3901-frame flight: 87.8 deg on one
-    of 3895 pairs whose step is 0.3 deg off the ground truth) leaves both agreeing.
+    of 3895 pairs of a model whose steps are all within 0.4 deg of the ground truth) leaves both
+    agreeing.
     """
     import pycolmap
 

@@ -48,7 +48,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from dronecap.sfm.colmap_steps import incremental_map, map_from_pairs, mapper_options
+from dronecap.sfm.colmap_steps import (
+    incremental_map,
+    map_from_pairs,
+    mapper_options,
+    write_model,
+)
 from dronecap.sfm.options import SfmOptions
 from dronecap.sfm.wide_pairs import start_pairs
 
@@ -267,13 +272,7 @@ def adjust_merged(
     _drop_bad_points(rec, opts)
     pycolmap.bundle_adjustment(rec, ba)
     _drop_bad_points(rec, opts)
-    rec.write(out)
-    return {
-        str(out): {
-            "frames": rec.num_reg_images(),
-            "reproj": float(rec.compute_mean_reprojection_error()),
-        }
-    }
+    return write_model(rec, out)
 
 
 def keep_chunk_points(merged: Any, models: list[Any], out: Path) -> dict[str, dict[str, float]]:
@@ -296,14 +295,7 @@ def keep_chunk_points(merged: Any, models: list[Any], out: Path) -> dict[str, di
                 track.add_elements(kept)
                 merged.add_point3D(point.xyz, track, point.color)
     merged.update_point_3d_errors()
-    out.mkdir(parents=True, exist_ok=True)
-    merged.write(out)
-    return {
-        str(out): {
-            "frames": merged.num_reg_images(),
-            "reproj": float(merged.compute_mean_reprojection_error()),
-        }
-    }
+    return write_model(merged, out)
 
 
 def _drop_bad_points(rec: Any, opts: SfmOptions) -> None:

@@ -318,14 +318,22 @@ def incremental_map(
                 raise
             time.sleep(0.5 * (attempt + 1))
     found = {}
-    for k, rec in models.items():
-        (out_dir / str(k)).mkdir(exist_ok=True)
-        rec.write(out_dir / str(k))  # the pipeline does not write every model itself
-        found[str(out_dir / str(k))] = {
+    for k, rec in models.items():  # the pipeline does not write every model itself
+        found.update(write_model(rec, out_dir / str(k)))
+    return found
+
+
+def write_model(rec: Any, folder: Path) -> dict[str, dict[str, float]]:
+    """Write the reconstruction ``rec`` into ``folder`` (created); returns the models record
+    the mappers return: {folder: {"frames": registered, "reproj": mean reprojection px}}."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rec.write(folder)
+    return {
+        str(folder): {
             "frames": rec.num_reg_images(),
             "reproj": float(rec.compute_mean_reprojection_error()),
         }
-    return found
+    }
 
 
 def map_from_pairs(

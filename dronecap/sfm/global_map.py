@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from dronecap.sfm.bend import WIDE_P95_DEG, rotation_disagreement
+from dronecap.sfm.colmap_steps import write_model
 from dronecap.sfm.options import SfmOptions
 
 
@@ -53,12 +54,7 @@ def global_map(
     )
     found = {}
     for k, rec in models.items():
-        (out_dir / str(k)).mkdir(exist_ok=True)
-        rec.write(out_dir / str(k))
-        found[str(out_dir / str(k))] = {
-            "frames": rec.num_reg_images(),
-            "reproj": float(rec.compute_mean_reprojection_error()),
-        }
+        found.update(write_model(rec, out_dir / str(k)))
     record: dict[str, Any] = {"frames": 0, "kept": False}
     if found:
         best = max(found, key=lambda j: found[j]["frames"])

@@ -13,9 +13,8 @@ when even it moved more (:func:`keyframes`). The keyframes are matched among the
 sequential matcher pairs frames (:func:`match_keyframes`): on the 3901-frame flight, without
 those pairs a keyframe shared matches with its next keyframe only, and a quarter of the flight
 did not map. The other frames are then registered into the
-keyframes' model with the keyframes held fixed and without global bundle adjustment
-(:func:`register_rest`): each needs only its 2D-3D matches to the keyframes' points, so the
-cost is linear in frames.
+keyframes' model, which stays as mapped, without bundle adjustment (:func:`register_rest`):
+each needs only its 2D-3D matches to the keyframes' points, so the cost is linear in frames.
 """
 
 from __future__ import annotations
@@ -26,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from dronecap.sfm.colmap_steps import mapper_options, match_listed
+from dronecap.sfm.colmap_steps import mapper_options, match_listed, write_model
 from dronecap.sfm.options import SfmOptions
 
 PAIR_FILE = "keyframe_pairs.txt"  # work-folder file of the keyframes' pairs
@@ -43,8 +42,11 @@ def choose_keyframes(
     returns the report's record: keyframes, frames and the flow threshold."""
     flow = median_flow(database, usable, opts.overlap)
     keep = keyframes(flow, len(usable), opts.overlap, opts.keyframe_flow)
-    record: dict[str, Any] = {"keyframes": len(keep), "frames": len(usable)}
-    record["flow_px"] = opts.keyframe_flow
+    record: dict[str, Any] = {
+        "keyframes": len(keep),
+        "frames": len(usable),
+        "flow_px": opts.keyframe_flow,
+    }
     if len(keep) == len(usable):
         return usable, record
     names = [usable[i] for i in keep]
@@ -122,9 +124,8 @@ def register_rest(
     registers nothing. Triangulating each new frame's tracks as well let frames beyond the
     keyframes' points register, but they drifted (3901-frame flight, keyframes' model missing
     its ends: rotation error median 4.3 deg against 0.53 without); those frames are left to
-    the caller's extension pass. The model goes to
-    ``out_dir``; returns {folder: frames, reprojection px} as
-    :func:`dronecap.sfm.colmap_steps.incremental_map` does."""
+    the caller's extension pass. The model goes to ``out_dir``; returns its record
+    (:func:`dronecap.sfm.colmap_steps.write_model`)."""
     import pycolmap
 
     pipeline = mapper_options(opts, refine_camera)  # its thresholds for registration
@@ -152,11 +153,4 @@ def register_rest(
         todo, forward = sorted(left), not forward
     rec = mapper.reconstruction
     mapper.end_reconstruction(False)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rec.write(out_dir)
-    return {
-        str(out_dir): {
-            "frames": rec.num_reg_images(),
-            "reproj": float(rec.compute_mean_reprojection_error()),
-        }
-    }
+    return write_model(rec, out_dir)

@@ -145,9 +145,8 @@ def _keyframes(
 ) -> list[str]:
     """The frames the mapper maps: a long single flight's keyframes (:mod:`keyframes`, record in
     ``out["keyframes"]``), else all ``usable`` frames."""
-    if opts.keyframe_flow <= 0 or n_drones > 1 or len(usable) < opts.keyframes_above:
-        return usable
-    if opts.mapper == "global":
+    thin = opts.keyframe_flow > 0 and n_drones == 1 and opts.mapper != "global"
+    if not thin or len(usable) < opts.keyframes_above:
         return usable
     t = phase("keyframes")
     mapped, out["keyframes"] = choose_keyframes(root / "database.db", root, usable, opts)
@@ -167,7 +166,7 @@ def _register_rest(
 ) -> dict[str, dict[str, float]]:
     """The keyframes' best model among ``found`` with every other ``usable`` frame registered
     into it (:func:`dronecap.sfm.keyframes.register_rest`)."""
-    best = max(found, key=lambda k: (found[k]["frames"], -found[k]["reproj"]))
+    best = _best(found)
     t = phase("register the other frames", found[best]["frames"])
     db = root / "database.db"
     found = register_rest(db, Path(best), root / REST, usable, opts, refine_camera, on_register)
@@ -294,8 +293,7 @@ def _settle(
     are missing and re-register its pose jumps (both skipped once the time cap's ``deadline``
     passed). Returns the frames of the chosen model before the extension."""
     db, images, times = root / "database.db", root / "images", out["times"]
-    # most frames first; among equals, the lower reprojection error (the better basin)
-    best = max(found, key=lambda k: (found[k]["frames"], -found[k]["reproj"]))
+    best = _best(found)
     out["best"] = best
     out["init_pair"]["kept"] = Path(best).parent.name != ALT_MODELS  # our pair started it
     size = found[best]["frames"]
@@ -319,6 +317,12 @@ def _settle(
         )
         times["remap_jumps"] = time.perf_counter() - t
     return found[best]["frames"]
+
+
+def _best(found: dict[str, dict[str, float]]) -> str:
+    """The model of ``found`` with most frames; among equals, the lower reprojection error (the
+    better basin)."""
+    return max(found, key=lambda k: (found[k]["frames"], -found[k]["reproj"]))
 
 
 def _capped(opts: SfmOptions, deadline: float | None) -> SfmOptions:
