@@ -59,7 +59,7 @@ def visible(
     if min_transmittance <= 0:
         return s
     encoded = field.encode(s.midpoints(origins, dirs))
-    sigma, _ = field.geometry_from_encoding(encoded)
+    sigma = field.density_from_encoding(encoded)
     ri = s.ray_indices
     _, trans = packed_weights(sigma * (s.t_ends - s.t_starts), ri, s.counts.numel())
     keep = (trans > min_transmittance).nonzero().squeeze(1)

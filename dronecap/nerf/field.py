@@ -89,8 +89,9 @@ class Field(nn.Module):
         self.register_buffer("aabb_min", a[0].clone(), persistent=False)
         self.register_buffer("aabb_size", (a[1] - a[0]).clone(), persistent=False)
 
-    def _run(self, mlp: nn.Sequential, x: Tensor) -> Tensor:
-        """Apply ``mlp`` to ``x`` [N, n_in] float32 -> [N, n_out] float32.
+    def _run(self, mlp: nn.Sequential, x: Tensor, outputs: int | None = None) -> Tensor:
+        """Apply ``mlp`` to ``x`` [N, n_in] float32 -> [N, n_out] float32 (only the first
+        ``outputs`` columns of the last layer when given: [N, outputs]).
 
         In fp32 products every activation is rounded to the storage dtype (GAP9 emulation).
         The ReLUs work in place (a ReLU of a rounded value needs no rounding), with autograd
@@ -99,22 +100,25 @@ class Field(nn.Module):
         padded with zeros to a multiple of :data:`ROW_QUANTUM` (zero rows stay zero and add
         nothing to the weight gradients).
         """
+        last = len(mlp) - 1
         if self.product_dtype == torch.float32:
-            for layer in mlp:
+            for i, layer in enumerate(mlp):
                 if isinstance(layer, nn.ReLU):
                     x = torch.relu_(x)
                 else:
-                    x = round_to(layer(x), self.dtype)
+                    w = layer.weight if i < last or outputs is None else layer.weight[:outputs]
+                    x = round_to(F.linear(x, w), self.dtype)
             return x
         n = x.shape[0]
         rows = -(-n // ROW_QUANTUM) * ROW_QUANTUM
         h = x.new_zeros((rows, x.shape[1]), dtype=self.product_dtype)
         h[:n] = x
-        for layer in mlp:
+        for i, layer in enumerate(mlp):
             if isinstance(layer, nn.ReLU):
                 h = torch.relu_(h)
             else:
-                h = F.linear(h, layer.weight.to(self.product_dtype))
+                w = layer.weight if i < last or outputs is None else layer.weight[:outputs]
+                h = F.linear(h, w.to(self.product_dtype))
         return h[:n].float()
 
     def encode(self, points: Tensor) -> Tensor:
@@ -141,9 +145,15 @@ class Field(nn.Module):
         h = self._run(self.density_mlp, round_to(encoded, self.dtype))
         return trunc_exp(h[:, 0]), h
 
+    def density_from_encoding(self, encoded: Tensor) -> Tensor:
+        """Density [N] per scene unit from a hash encoding [N, levels * features]: the density
+        MLP's first output alone (its last layer computes 1 column, not ``geo_features``; the
+        pre-pass of compaction and the occupancy updates need no geometry features)."""
+        return trunc_exp(self._run(self.density_mlp, round_to(encoded, self.dtype), 1)[:, 0])
+
     def density(self, points: Tensor) -> Tensor:
         """Density [N] per scene unit at ``points`` [N, 3]."""
-        return self.geometry(points)[0]
+        return self.density_from_encoding(self.encode(points))
 
     def forward(self, points: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         """Colour and density.

@@ -28,6 +28,7 @@ def _wall_field() -> Field:
         f.density_mlp[-1].weight.zero_()
     f.encode = lambda p: torch.where(p[:, 2:] > -0.4, 1.0, 0.0).expand(-1, 2)  # type: ignore
     f.geometry_from_encoding = lambda e: (e[:, 0] * 1e4, e)  # type: ignore
+    f.density_from_encoding = lambda e: e[:, 0] * 1e4  # type: ignore
     return f
 
 

@@ -119,3 +119,13 @@ def test_bf16_products_keep_huge_and_zero_densities_finite():
     with torch.no_grad():
         fast.density_mlp[-1].weight.zero_()
     assert torch.equal(fast.density(torch.rand(5, 3)), torch.ones(5))  # exp(0)
+
+
+def test_density_alone_is_the_geometry_pass_density_in_every_product_dtype():
+    # the pre-pass and grid updates compute only the density column of the last layer
+    pts = torch.rand(700, 3) * 2 - 1
+    for f in (*_twins(), *_twins(precision="fp16")[:1]):
+        sig, geo = f.geometry(pts)
+        assert geo.shape[1] > 1
+        assert torch.allclose(f.density(pts), sig, rtol=1e-6, atol=0)
+        assert torch.equal(f.density_from_encoding(f.encode(pts)), f.density(pts))
