@@ -148,7 +148,15 @@ PRESETS: dict[str, TrainConfig] = {
     # vs 31.07 dB; 60 s on one thread lego 28.15 vs 27.92, corridor 26.50 vs 26.21, Himax
     # test_23 24.85 vs 24.93 (time_to_quality_compare_lr_s17.md); modelled GAP9 minutes to
     # 26.94 dB, seeds 0 / 1 / 2: 9.8 / 8.8 / 10.0 vs 11.1 / 9.5 / 9.2 (gap9_curves_s17.md).
-    "scene-sized": _row(8192, 13).replace(sized=True, tile_samples=8192, lr=0.015),
+    # Rays from 100 random training frames per step (Instant-NGP's 100 images per step; the
+    # paper's rows draw one frame's rays, a GAP9 memory choice) and a grid warm-up of one step
+    # (the first update visits every cell, later ones a quarter uniformly plus a quarter of the
+    # occupied ones: 76 full-hull updates took a third of a 10-s run). Session 21, lego, 1
+    # thread: 10 s 21.60 -> 23.46 dB (3 seeds), 10k steps 31.19 -> 31.84 dB (grid_warmup 0),
+    # docs/training.md "Rays from many frames".
+    "scene-sized": _row(8192, 13).replace(
+        sized=True, tile_samples=8192, lr=0.015, images_per_step=100, grid_warmup=1
+    ),
     # A seconds-long configuration for the test suite.
     "test": TrainConfig(
         steps=60,
