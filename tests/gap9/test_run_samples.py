@@ -34,11 +34,15 @@ def test_the_schedule_counted_is_the_trainers(steps, warmup, every):
 
 
 def test_the_trainers_schedule_updates_less_in_warm_up_than_the_fixed_rule():
-    # Instant-NGP's interval grows from step 32 on: 76 updates in the 256-step warm-up, not 256
-    trainer = arch.grid_schedule(LEGO)
-    fixed = arch.grid_schedule(LEGO, rule="fixed")
+    # Instant-NGP's interval grows from step 32 on: 76 updates in a 256-step warm-up, not 256
+    paper_warmup = LEGO.replace(grid_warmup=256)
+    trainer = arch.grid_schedule(paper_warmup)
+    fixed = arch.grid_schedule(paper_warmup, rule="fixed")
     assert (trainer.warmup_updates, fixed.warmup_updates) == (76, 256)
     assert trainer.steady_updates == fixed.steady_updates == 609  # every 16 from step 256 on
+    # the default's warm-up is its first update: as many updates, one of them over every cell
+    default = arch.grid_schedule(LEGO)
+    assert (default.warmup_updates, default.updates) == (1, trainer.updates)
     # the paper's run: every 256 steps, no warm-up -> 39 updates in 10k steps
     flown = preset("tiny-dronerf").replace(grid_every=256, grid_warmup=0)
     assert arch.grid_schedule(flown, rule="fixed").updates == 39
