@@ -182,7 +182,7 @@ def report(args: argparse.Namespace) -> None:
 
 # The default before this session's changes, as overrides of today's: what `compare` runs as
 # "old" beside the current default ("new") in the same process.
-OLD_DEFAULT = ("images_per_step=1", "grid_warmup=256")  # session 21's change undone
+OLD_DEFAULT = ("mlp_dtype=auto", "grid_ramp=16")  # session 22's changes undone
 COMPARE_SCENES = ("lego", "corridor", "himax-test_23")
 
 

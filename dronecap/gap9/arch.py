@@ -336,9 +336,10 @@ def density_query_ops(cfg: TrainConfig) -> int:
 
 GridRule = Literal["trainer", "fixed"]
 """When the occupancy grid is updated: "trainer" is the trainer's own rule
-(:func:`dronecap.nerf.grid_schedule.due`, Instant-NGP's: the interval grows as
-``clamp(step // 16, 1, grid_every)``); "fixed" is the paper's GAP9 run as it states it, every
-step for ``grid_warmup`` steps, then every ``grid_every`` steps."""
+(:func:`dronecap.nerf.grid_schedule.due`: the interval grows as
+``clamp(step // grid_ramp, 1, grid_every)``, Instant-NGP's with ramp 16); "fixed" is the
+paper's GAP9 run as it states it, every step for ``grid_warmup`` steps, then every
+``grid_every`` steps."""
 GRID_RULES: tuple[GridRule, ...] = get_args(GridRule)
 DEFAULT_GRID_RULE: GridRule = "trainer"  # a run on GAP9 updates its grid as the trainer did
 
@@ -365,19 +366,20 @@ class GridSchedule:
 
 @functools.lru_cache(maxsize=256)
 def grid_updates(
-    steps: int, warmup: int, every: int, rule: GridRule = DEFAULT_GRID_RULE
+    steps: int, warmup: int, every: int, rule: GridRule = DEFAULT_GRID_RULE, ramp: int = 16
 ) -> tuple[int, int]:
     """(updates before step ``warmup``, updates from it on) over ``steps`` optimizer steps.
 
     "trainer" counts the steps :func:`dronecap.nerf.grid_schedule.due` says are due (the rule
-    lives there only; 10k steps, warm-up 256, every 16: 76 + 609); "fixed" counts
+    lives there only, ``ramp`` its interval growth; 10k steps, warm-up 256, every 16, ramp 16:
+    76 + 609); "fixed" counts
     ``min(steps, warmup)`` warm-up updates and ``(steps - warmup) // every`` later ones (10k
     steps, no warm-up, every 256: 0 + 39).
     """
     if rule == "fixed":
         warm = min(steps, warmup)
         return warm, (steps - warm) // every
-    grid = GridConfig(warmup=warmup, every=every)
+    grid = GridConfig(warmup=warmup, every=every, ramp=ramp)
     due = [s for s in range(steps) if grid_due(grid, s)]
     warm = sum(1 for s in due if s < warmup)
     return warm, len(due) - warm
@@ -392,7 +394,7 @@ def grid_schedule(
     cells (:func:`dronecap.nerf.occupancy.update`). Instant-NGP's 35k steps, warm-up 256,
     every 16, 128^3 cells, no hull: 76 + 2172 updates, 2.44e9 queries (69.6k per step)."""
     hull = round(hull_fraction * cfg.grid_res**3)
-    warm, steady = grid_updates(cfg.steps, cfg.grid_warmup, cfg.grid_every, rule)
+    warm, steady = grid_updates(cfg.steps, cfg.grid_warmup, cfg.grid_every, rule, cfg.grid_ramp)
     return GridSchedule(warm, steady, hull, 2 * (hull // 4))
 
 

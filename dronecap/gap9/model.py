@@ -222,8 +222,8 @@ def step_ops(
 _CONFIG_FIELDS = (
     "images_per_step", "resolution", "batch_samples", "tile_samples", "levels", "features",
     "log2_hashmap", "n_min", "n_max", "hidden", "density_layers", "color_layers", "geo_features",
-    "sh_degree", "channels", "grid_res", "grid_warmup", "grid_every", "march_steps", "steps",
-    "train_images", "precision", "far_field",
+    "sh_degree", "channels", "grid_res", "grid_warmup", "grid_every", "grid_ramp", "march_steps",
+    "steps", "train_images", "precision", "far_field",
 )  # fmt: skip
 
 

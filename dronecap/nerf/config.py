@@ -58,6 +58,8 @@ class TrainConfig:
     grid_threshold: float = 0.01  # occupied if density > min(threshold, mean density)
     grid_warmup: int = 256  # steps during which every cell is updated every step
     grid_every: int = 16  # update interval after warm-up (paper's GAP9 run: 256)
+    # the interval grows by one every grid_ramp steps until grid_every (Instant-NGP: 16)
+    grid_ramp: int = 16
     grid_carve: bool = True  # alpha datasets: cells outside the views' silhouettes stay empty
     march_steps: int = 1024  # marching step = AABB diagonal / march_steps
     max_samples_per_ray: int = 1024
@@ -75,8 +77,11 @@ class TrainConfig:
     precision: str = "fp32"  # "fp32", "fp16" or "bf16" storage of hash table and activations
     # MLP matrix products on the host: "fp32", "bf16" (fp32 accumulation; weights, gradients
     # and Adam stay fp32) or "auto": bf16 where the CPU multiplies it natively (AVX512-BF16 or
-    # AMX), 20-27 % faster steps at equal PSNR (docs/training.md), else fp32. Resolved once.
-    mlp_dtype: str = "auto"
+    # AMX), else fp32. Resolved once. Default fp32: on an AMX Xeon bf16 was 20-27 % faster per
+    # step in session 8, but with today's step (8k trained samples, the compaction pre-pass)
+    # it is slower (lego, 1 thread: 23.4 vs 22.3 ms; 2 threads 18.2 vs 15.9 ms) and a 10-s lego
+    # run gains 0.8 dB in fp32 (docs/training.md "MLP products").
+    mlp_dtype: str = "fp32"
     # --- the camera's photometric model, learned while training (nerf/photometric.py) -------
     # Per-frame exposure gains and one vignetting falloff multiply the rendered colour before
     # the loss; renders and evaluation show the scene without them. "on", "off", or "auto": on
@@ -153,9 +158,11 @@ PRESETS: dict[str, TrainConfig] = {
     # (the first update visits every cell, later ones a quarter uniformly plus a quarter of the
     # occupied ones: 76 full-hull updates took a third of a 10-s run). Session 21, lego, 1
     # thread: 10 s 21.60 -> 23.46 dB (3 seeds), 10k steps 31.19 -> 31.84 dB (grid_warmup 0),
-    # docs/training.md "Rays from many frames".
+    # docs/training.md "Rays from many frames". The grid's update interval grows by one every
+    # 4 steps (reaching 16 at step 64; Instant-NGP's 16 reach it at step 256): 36 updates in
+    # the first 256 steps instead of 76 (session 22, docs/training.md "Fewer early updates").
     "scene-sized": _row(8192, 13).replace(
-        sized=True, tile_samples=8192, lr=0.015, images_per_step=100, grid_warmup=1
+        sized=True, tile_samples=8192, lr=0.015, images_per_step=100, grid_warmup=1, grid_ramp=4
     ),
     # A seconds-long configuration for the test suite.
     "test": TrainConfig(
@@ -295,6 +302,7 @@ _RULES: dict[str, tuple[Any, str]] = {
     "grid_threshold": (lambda x, c: x >= 0, ">= 0"),
     "grid_warmup": (lambda x, c: x >= 0, ">= 0"),
     "grid_every": (lambda x, c: x >= 1, ">= 1"),
+    "grid_ramp": (lambda x, c: x >= 1, ">= 1"),
     "march_steps": (lambda x, c: x >= 1, ">= 1"),
     "max_samples_per_ray": (lambda x, c: x >= 1, ">= 1"),
     "train_min_transmittance": (lambda x, c: 0 <= x < 1, "in [0, 1)"),

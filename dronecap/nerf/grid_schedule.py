@@ -17,13 +17,15 @@ class GridConfig:
     threshold: float = 0.01  # optical-thickness threshold of an occupied cell
     warmup: int = 256  # steps during which all cells are updated every step
     every: int = 16  # steps between updates after warm-up
+    ramp: int = 16  # steps per unit of growth of the interval (Instant-NGP: 16)
     chunk: int = 1 << 16  # points per density evaluation
 
 
 def due(cfg: GridConfig, step: int) -> bool:
     """Whether the grid is updated before optimizer step ``step`` (0-based).
 
-    As Instant-NGP: the interval grows as ``clamp(step // 16, 1, every)``, so the first 32
-    steps update every step and the interval reaches ``every`` after ``16 * every`` steps.
+    The interval grows as ``clamp(step // ramp, 1, every)`` (Instant-NGP: ramp 16, so the
+    first 32 steps update every step and the interval reaches ``every`` after ``16 * every``
+    steps).
     """
-    return step % min(max(step // 16, 1), max(cfg.every, 1)) == 0
+    return step % min(max(step // max(cfg.ramp, 1), 1), max(cfg.every, 1)) == 0

@@ -22,11 +22,12 @@ LEGO = deployed(
 
 
 @pytest.mark.parametrize(
-    ("steps", "warmup", "every"), [(10_000, 256, 16), (1949, 256, 16), (600, 0, 256), (50, 64, 4)]
+    ("steps", "warmup", "every", "ramp"),
+    [(10_000, 256, 16, 16), (1949, 256, 16, 4), (600, 0, 256, 16), (50, 64, 4, 1), (900, 1, 16, 4)],
 )
-def test_the_schedule_counted_is_the_trainers(steps, warmup, every):
-    cfg = LEGO.replace(steps=steps, grid_warmup=warmup, grid_every=every)
-    grid = occupancy.GridConfig(res=cfg.grid_res, warmup=warmup, every=every)
+def test_the_schedule_counted_is_the_trainers(steps, warmup, every, ramp):
+    cfg = LEGO.replace(steps=steps, grid_warmup=warmup, grid_every=every, grid_ramp=ramp)
+    grid = occupancy.GridConfig(res=cfg.grid_res, warmup=warmup, every=every, ramp=ramp)
     due = [s for s in range(steps) if occupancy.due(grid, s)]
     sched = arch.grid_schedule(cfg)
     assert sched.warmup_updates == sum(1 for s in due if s < warmup)
@@ -35,14 +36,15 @@ def test_the_schedule_counted_is_the_trainers(steps, warmup, every):
 
 def test_the_trainers_schedule_updates_less_in_warm_up_than_the_fixed_rule():
     # Instant-NGP's interval grows from step 32 on: 76 updates in a 256-step warm-up, not 256
-    paper_warmup = LEGO.replace(grid_warmup=256)
+    paper_warmup = LEGO.replace(grid_warmup=256, grid_ramp=16)
     trainer = arch.grid_schedule(paper_warmup)
     fixed = arch.grid_schedule(paper_warmup, rule="fixed")
     assert (trainer.warmup_updates, fixed.warmup_updates) == (76, 256)
     assert trainer.steady_updates == fixed.steady_updates == 609  # every 16 from step 256 on
-    # the default's warm-up is its first update: as many updates, one of them over every cell
+    # the default's warm-up is its first update, and its interval reaches 16 at step 64, not
+    # 256: 40 fewer updates, all in the first 256 steps
     default = arch.grid_schedule(LEGO)
-    assert (default.warmup_updates, default.updates) == (1, trainer.updates)
+    assert (default.warmup_updates, default.updates) == (1, trainer.updates - 40)
     # the paper's run: every 256 steps, no warm-up -> 39 updates in 10k steps
     flown = preset("tiny-dronerf").replace(grid_every=256, grid_warmup=0)
     assert arch.grid_schedule(flown, rule="fixed").updates == 39

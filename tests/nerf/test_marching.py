@@ -73,6 +73,14 @@ def test_grid_schedule_matches_instant_ngp():
     assert [s for s in due if s >= 512][:3] == [512, 528, 544]  # then every 16
 
 
+def test_grid_schedule_ramp_sets_how_fast_the_interval_grows():
+    cfg = occupancy.GridConfig(res=8, every=16, ramp=4)
+    due = [s for s in range(200) if occupancy.due(cfg, s)]
+    assert due[:9] == list(range(9))  # every step until step 8 (step // 4 == 2)
+    assert 9 not in due and 10 in due
+    assert [s for s in due if s >= 64][:3] == [64, 80, 96]  # every 16 from step 64 on
+
+
 def test_grid_update_thresholds_density():
     cfg = occupancy.GridConfig(res=4, warmup=10)
     st = occupancy.init_state(cfg)

@@ -490,6 +490,9 @@ torch::Tensor hash_backward(torch::Tensor grad_out, torch::Tensor x, torch::Tens
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("forward", &hash_forward, "hash encoding forward: (x [N,3], table [R,F], ...) -> [N, L*F]");
-  m.def("backward", &hash_backward, "hash encoding backward: scatter-add of grad_out into the table");
+  // the GIL is released while a kernel runs: another Python thread can work meanwhile
+  m.def("forward", &hash_forward, "hash encoding forward: (x [N,3], table [R,F], ...) -> [N, L*F]",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("backward", &hash_backward, "hash encoding backward: scatter-add of grad_out into the table",
+        py::call_guard<py::gil_scoped_release>());
 }

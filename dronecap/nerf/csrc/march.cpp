@@ -131,5 +131,7 @@ std::vector<torch::Tensor> march(torch::Tensor origins, torch::Tensor dirs, torc
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("march", &march, "occupancy-grid ray marching into packed samples");
+  // the GIL is released while the kernel runs: another Python thread can work meanwhile
+  m.def("march", &march, "occupancy-grid ray marching into packed samples",
+        py::call_guard<py::gil_scoped_release>());
 }
