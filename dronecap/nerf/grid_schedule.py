@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 
 @dataclass
@@ -19,6 +20,16 @@ class GridConfig:
     every: int = 16  # steps between updates after warm-up
     ramp: int = 16  # steps per unit of growth of the interval (Instant-NGP: 16)
     chunk: int = 1 << 16  # points per density evaluation
+
+
+def grid_config(cfg: Any) -> GridConfig:
+    """The occupancy-grid settings of a :class:`dronecap.nerf.config.TrainConfig` (its
+    ``grid_res``, ``grid_decay``, ``grid_threshold``, ``grid_warmup``, ``grid_every`` and
+    ``grid_ramp``)."""
+    return GridConfig(
+        cfg.grid_res, cfg.grid_decay, cfg.grid_threshold, cfg.grid_warmup, cfg.grid_every,
+        cfg.grid_ramp,
+    )  # fmt: skip
 
 
 def due(cfg: GridConfig, step: int) -> bool:

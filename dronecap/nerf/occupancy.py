@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .grid_schedule import GridConfig, due
+from .grid_schedule import GridConfig, due, grid_config
 
-__all__ = ["GridConfig", "GridState", "due", "update"]  # the schedule lives in grid_schedule
+# the schedule lives in grid_schedule
+__all__ = ["GridConfig", "GridState", "due", "grid_config", "update"]
 
 DensityFn = Callable[[Tensor], Tensor]  # points [N, 3] -> sigma [N]
 

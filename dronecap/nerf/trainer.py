@@ -101,14 +101,7 @@ class Trainer:
         self.aabb = torch.as_tensor(scene.aabb, dtype=torch.float32, device=self.device)
         diag = float(np.linalg.norm(scene.aabb[1] - scene.aabb[0]))
         self.step_size = diag / cfg.march_steps
-        self.grid_cfg = occupancy.GridConfig(
-            cfg.grid_res,
-            cfg.grid_decay,
-            cfg.grid_threshold,
-            cfg.grid_warmup,
-            cfg.grid_every,
-            cfg.grid_ramp,
-        )
+        self.grid_cfg = occupancy.grid_config(cfg)
         self.grid = occupancy.init_state(self.grid_cfg, self.device)
         self.step, self.train_seconds = 0, 0.0
         self.tally = compaction.Tally()  # samples marched and trained on: the GAP9 model's input
