@@ -366,15 +366,14 @@ class GridSchedule:
 
 @functools.lru_cache(maxsize=256)
 def grid_updates(
-    steps: int, warmup: int, every: int, rule: GridRule = DEFAULT_GRID_RULE, ramp: int = 16
+    steps: int, warmup: int, every: int, ramp: int, rule: GridRule = DEFAULT_GRID_RULE
 ) -> tuple[int, int]:
     """(updates before step ``warmup``, updates from it on) over ``steps`` optimizer steps.
 
     "trainer" counts the steps :func:`dronecap.nerf.grid_schedule.due` says are due (the rule
-    lives there only, ``ramp`` its interval growth; 10k steps, warm-up 256, every 16, ramp 16:
-    76 + 609); "fixed" counts
-    ``min(steps, warmup)`` warm-up updates and ``(steps - warmup) // every`` later ones (10k
-    steps, no warm-up, every 256: 0 + 39).
+    lives there only; ``ramp`` is its interval growth; 10k steps, warm-up 256, every 16, ramp
+    16: 76 + 609); "fixed" counts ``min(steps, warmup)`` warm-up updates and ``(steps -
+    warmup) // every`` later ones (10k steps, no warm-up, every 256: 0 + 39).
     """
     if rule == "fixed":
         warm = min(steps, warmup)
@@ -394,7 +393,7 @@ def grid_schedule(
     cells (:func:`dronecap.nerf.occupancy.update`). Instant-NGP's 35k steps, warm-up 256,
     every 16, 128^3 cells, no hull: 76 + 2172 updates, 2.44e9 queries (69.6k per step)."""
     hull = round(hull_fraction * cfg.grid_res**3)
-    warm, steady = grid_updates(cfg.steps, cfg.grid_warmup, cfg.grid_every, rule, cfg.grid_ramp)
+    warm, steady = grid_updates(cfg.steps, cfg.grid_warmup, cfg.grid_every, cfg.grid_ramp, rule)
     return GridSchedule(warm, steady, hull, 2 * (hull // 4))
 
 

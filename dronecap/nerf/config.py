@@ -79,8 +79,9 @@ class TrainConfig:
     # and Adam stay fp32) or "auto": bf16 where the CPU multiplies it natively (AVX512-BF16 or
     # AMX), else fp32. Resolved once. Default fp32: on an AMX Xeon bf16 was 20-27 % faster per
     # step in session 8, but with today's step (8k trained samples, the compaction pre-pass)
-    # it is slower (lego, 1 thread: 23.4 vs 22.3 ms; 2 threads 18.2 vs 15.9 ms) and a 10-s lego
-    # run gains 0.8 dB in fp32 (docs/training.md "MLP products").
+    # it is slower (lego, 1 thread: 23.4 vs 22.3 ms; 2 threads 18.2 vs 15.9 ms); 10-s lego
+    # runs 25.63 / 25.66 dB in fp32 against 25.46 / 25.50 in bf16 (docs/training.md "fp32
+    # products and fewer early grid updates").
     mlp_dtype: str = "fp32"
     # --- the camera's photometric model, learned while training (nerf/photometric.py) -------
     # Per-frame exposure gains and one vignetting falloff multiply the rendered colour before
@@ -160,7 +161,8 @@ PRESETS: dict[str, TrainConfig] = {
     # thread: 10 s 21.60 -> 23.46 dB (3 seeds), 10k steps 31.19 -> 31.84 dB (grid_warmup 0),
     # docs/training.md "Rays from many frames". The grid's update interval grows by one every
     # 4 steps (reaching 16 at step 64; Instant-NGP's 16 reach it at step 256): 36 updates in
-    # the first 256 steps instead of 76 (session 22, docs/training.md "Fewer early updates").
+    # the first 256 steps instead of 76 (session 22, docs/training.md "fp32 products and fewer
+    # early grid updates").
     "scene-sized": _row(8192, 13).replace(
         sized=True, tile_samples=8192, lr=0.015, images_per_step=100, grid_warmup=1, grid_ramp=4
     ),

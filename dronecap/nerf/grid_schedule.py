@@ -6,7 +6,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .config import TrainConfig
 
 
 @dataclass
@@ -22,10 +25,8 @@ class GridConfig:
     chunk: int = 1 << 16  # points per density evaluation
 
 
-def grid_config(cfg: Any) -> GridConfig:
-    """The occupancy-grid settings of a :class:`dronecap.nerf.config.TrainConfig` (its
-    ``grid_res``, ``grid_decay``, ``grid_threshold``, ``grid_warmup``, ``grid_every`` and
-    ``grid_ramp``)."""
+def grid_config(cfg: TrainConfig) -> GridConfig:
+    """The occupancy-grid settings of a training configuration (its ``grid_*`` fields)."""
     return GridConfig(
         cfg.grid_res, cfg.grid_decay, cfg.grid_threshold, cfg.grid_warmup, cfg.grid_every,
         cfg.grid_ramp,
