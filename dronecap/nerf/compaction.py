@@ -58,8 +58,7 @@ def visible(
     """
     if min_transmittance <= 0:
         return s
-    encoded = field.encode(s.midpoints(origins, dirs))
-    sigma = field.density_from_encoding(encoded)
+    sigma, encoded = field.density_and_encoding(s.midpoints(origins, dirs))
     ri = s.ray_indices
     _, trans = packed_weights(sigma * (s.t_ends - s.t_starts), ri, s.counts.numel())
     keep = (trans > min_transmittance).nonzero().squeeze(1)

@@ -152,8 +152,33 @@ class Field(nn.Module):
         return trunc_exp(self._run(self.density_mlp, round_to(encoded, self.dtype), 1)[:, 0])
 
     def density(self, points: Tensor) -> Tensor:
-        """Density [N] per scene unit at ``points`` [N, 3]."""
+        """Density [N] per scene unit at ``points`` [N, 3] (without autograd when it is off:
+        :meth:`density_and_encoding`)."""
+        if not torch.is_grad_enabled():
+            return self.density_and_encoding(points, keep_encoded=False)[0]
         return self.density_from_encoding(self.encode(points))
+
+    @torch.no_grad()
+    def density_and_encoding(
+        self, points: Tensor, keep_encoded: bool = True
+    ) -> tuple[Tensor, Tensor | None]:
+        """Density [N] per scene unit at ``points`` [N, 3] and, with ``keep_encoded``, their
+        hash encoding [N, levels * features] (:meth:`encode`), without autograd.
+
+        With fp32 storage and products, a density MLP of one hidden layer and the C++ kernel,
+        encoding and MLP run fused (:meth:`HashGrid.fused_density`; the same values up to
+        float32 summation order), else one after the other.
+        """
+        unit = (points - self.aabb_min) / self.aabb_size
+        layers = [m for m in self.density_mlp if isinstance(m, nn.Linear)]
+        if len(layers) == 2 and self.product_dtype == torch.float32:
+            fused = self.encoding.fused_density(
+                unit, layers[0].weight, layers[1].weight[0], keep_encoded
+            )
+            if fused is not None:
+                return trunc_exp(fused[0]), fused[1]
+        encoded = self.encoding(unit)
+        return self.density_from_encoding(encoded), (encoded if keep_encoded else None)
 
     def forward(self, points: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         """Colour and density.

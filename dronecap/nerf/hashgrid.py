@@ -187,6 +187,34 @@ class HashGrid(torch.nn.Module):
         return self._encode(*args)
 
     @torch.no_grad()
+    def fused_density(
+        self, x: Tensor, w1: Tensor, w2: Tensor, keep_encoded: bool
+    ) -> tuple[Tensor, Tensor | None] | None:
+        """The encoding of ``x`` [N, 3] (unit cube) run through a one-hidden-layer ReLU MLP in
+        one C++ pass, without autograd; None when the C++ kernel is not in use or the table is
+        not stored in float32 (then encode and multiply separately).
+
+        Args:
+            w1: [hidden, levels * features] the hidden layer's weight (bias-free).
+            w2: [hidden] the output row wanted (the density's, before its activation).
+            keep_encoded: also return the encoding [N, levels * features] (as :meth:`forward`).
+
+        Returns:
+            (raw [N] = w2 . relu(w1 @ encoding), encoding or None), float32. Blocks of points
+            are encoded and multiplied while they are in cache: the [N, hidden] activations
+            are never written (compaction's pre-pass and the occupancy updates query ~20-50k
+            points a step).
+        """
+        if self.dtype != torch.float32 or kernel("hashgrid", self.backend) is None:
+            return None
+        raw, encoded = load_extension().density(
+            x.float().contiguous(), self.table.detach().contiguous(), self.resolutions,
+            self.offsets, self.log2_hashmap, w1.detach().float(), w2.detach().float(),
+            keep_encoded,
+        )  # fmt: skip
+        return raw, (encoded if keep_encoded else None)
+
+    @torch.no_grad()
     def round_storage_(self) -> None:
         """Round the float32 master table in place to the storage dtype (no-op for float32)."""
         if self.dtype != torch.float32:

@@ -29,6 +29,10 @@ def _wall_field() -> Field:
     f.encode = lambda p: torch.where(p[:, 2:] > -0.4, 1.0, 0.0).expand(-1, 2)  # type: ignore
     f.geometry_from_encoding = lambda e: (e[:, 0] * 1e4, e)  # type: ignore
     f.density_from_encoding = lambda e: e[:, 0] * 1e4  # type: ignore
+    f.density_and_encoding = lambda p, keep_encoded=True: (  # type: ignore
+        f.density_from_encoding(f.encode(p)),
+        f.encode(p),
+    )
     return f
 
 

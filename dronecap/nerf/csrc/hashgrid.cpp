@@ -489,9 +489,152 @@ torch::Tensor hash_backward(torch::Tensor grad_out, torch::Tensor x, torch::Tens
   return grad;
 }
 
+namespace {
+
+constexpr int64_t kFuseBlock = 256;  // points per fused work item: encodings stay in L1/L2
+
+// Density MLP of one hidden layer on encoded rows e [n, in_dim]: out[i] = w2 . relu(W1 e_i),
+// w1t = W1 transposed [in_dim, hidden] (scalar loops; any width).
+void density_rows(const float* e, int64_t n, int64_t in_dim, const float* w1t, const float* w2,
+                  int64_t hidden, float* out) {
+  std::vector<float> hid(hidden);
+  for (int64_t i = 0; i < n; ++i) {
+    const float* row = e + i * in_dim;
+    std::fill(hid.begin(), hid.end(), 0.0f);
+    for (int64_t k = 0; k < in_dim; ++k) {
+      const float v = row[k];
+      const float* w = w1t + k * hidden;
+      for (int64_t j = 0; j < hidden; ++j) hid[j] += v * w[j];
+    }
+    float acc = 0.0f;
+    for (int64_t j = 0; j < hidden; ++j) acc += std::fmax(hid[j], 0.0f) * w2[j];
+    out[i] = acc;
+  }
+}
+
+#ifdef HG_AVX512
+// The same for a hidden width of 64 (every preset), four points at a time: their 4 x 64 hidden
+// values live in 16 registers and each row of w1t is loaded once for the four. Returns the
+// number of rows done (a multiple of 4; the rest go through density_rows).
+int64_t density_rows64(const float* e, int64_t n, int64_t in_dim, const float* w1t,
+                       const float* w2, float* out) {
+  const __m512 zero = _mm512_setzero_ps();
+  __m512 v2[4];
+  for (int q = 0; q < 4; ++q) v2[q] = _mm512_loadu_ps(w2 + 16 * q);
+  int64_t i = 0;
+  for (; i + 4 <= n; i += 4) {
+    __m512 acc[4][4];
+    for (int p = 0; p < 4; ++p)
+      for (int q = 0; q < 4; ++q) acc[p][q] = zero;
+    const float* row = e + i * in_dim;
+    for (int64_t k = 0; k < in_dim; ++k) {
+      const float* w = w1t + k * 64;
+      const __m512 w0 = _mm512_loadu_ps(w), w1 = _mm512_loadu_ps(w + 16);
+      const __m512 w2v = _mm512_loadu_ps(w + 32), w3 = _mm512_loadu_ps(w + 48);
+      for (int p = 0; p < 4; ++p) {
+        const __m512 v = _mm512_set1_ps(row[p * in_dim + k]);
+        acc[p][0] = _mm512_fmadd_ps(v, w0, acc[p][0]);
+        acc[p][1] = _mm512_fmadd_ps(v, w1, acc[p][1]);
+        acc[p][2] = _mm512_fmadd_ps(v, w2v, acc[p][2]);
+        acc[p][3] = _mm512_fmadd_ps(v, w3, acc[p][3]);
+      }
+    }
+    for (int p = 0; p < 4; ++p) {
+      __m512 t = _mm512_mul_ps(_mm512_max_ps(acc[p][0], zero), v2[0]);
+      for (int q = 1; q < 4; ++q) t = _mm512_fmadd_ps(_mm512_max_ps(acc[p][q], zero), v2[q], t);
+      out[i + p] = _mm512_reduce_add_ps(t);
+    }
+  }
+  return i;
+}
+#elif defined(HG_AVX2)
+// The same with AVX2 + FMA, one point at a time (its 64 hidden values in 8 registers).
+int64_t density_rows64(const float* e, int64_t n, int64_t in_dim, const float* w1t,
+                       const float* w2, float* out) {
+  const __m256 zero = _mm256_setzero_ps();
+  for (int64_t i = 0; i < n; ++i) {
+    __m256 acc[8];
+    for (int q = 0; q < 8; ++q) acc[q] = zero;
+    const float* row = e + i * in_dim;
+    for (int64_t k = 0; k < in_dim; ++k) {
+      const __m256 v = _mm256_set1_ps(row[k]);
+      const float* w = w1t + k * 64;
+      for (int q = 0; q < 8; ++q) acc[q] = _mm256_fmadd_ps(v, _mm256_loadu_ps(w + 8 * q), acc[q]);
+    }
+    __m256 t = _mm256_mul_ps(_mm256_max_ps(acc[0], zero), _mm256_loadu_ps(w2));
+    for (int q = 1; q < 8; ++q)
+      t = _mm256_fmadd_ps(_mm256_max_ps(acc[q], zero), _mm256_loadu_ps(w2 + 8 * q), t);
+    alignas(32) float lanes[8];
+    _mm256_store_ps(lanes, t);
+    float sum = 0.0f;
+    for (int q = 0; q < 8; ++q) sum += lanes[q];
+    out[i] = sum;
+  }
+  return n;
+}
+#endif
+
+}  // namespace
+
+// The density MLP's first output (before its activation) at points x, fused with their hash
+// encoding: a block of points is encoded into a buffer that stays in cache and goes through the
+// MLP (one hidden layer of ReLUs, bias-free) before the next block, so the [N, hidden]
+// activations never reach memory. w1 [hidden, L*F] and w2 [hidden] (the last layer's first row).
+// Returns {raw [N], encoded [N, L*F] (empty unless keep_encoded)}.
+std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
+                                           std::vector<int64_t> resolutions,
+                                           std::vector<int64_t> offsets, int64_t log2_hashmap,
+                                           torch::Tensor w1, torch::Tensor w2, bool keep_encoded) {
+  check_inputs(x, table);
+  const auto levels = make_levels(resolutions, offsets, log2_hashmap);
+  TORCH_CHECK(table.size(0) == offsets.back(), "table has ", table.size(0), " rows, expected ",
+              offsets.back());
+  const int64_t n = x.size(0), nf = table.size(1), nl = int64_t(levels.size());
+  const int64_t out_dim = nl * nf;
+  TORCH_CHECK(w1.dim() == 2 && w1.size(1) == out_dim && w1.scalar_type() == torch::kFloat32,
+              "w1 must be float32 [hidden, L*F]");
+  const int64_t hidden = w1.size(0);
+  TORCH_CHECK(hidden >= 1 && hidden <= 1024, "hidden width must be in [1, 1024]");
+  TORCH_CHECK(w2.numel() == hidden && w2.scalar_type() == torch::kFloat32,
+              "w2 must be float32 [hidden]");
+  const auto w1t = w1.t().contiguous();
+  const auto w2c = w2.reshape({hidden}).contiguous();
+  auto raw = torch::empty({n}, x.options());
+  auto encoded = keep_encoded ? torch::empty({n, out_dim}, x.options()) : torch::empty({0}, x.options());
+  const float* xp = x.data_ptr<float>();
+  const float* tp = table.data_ptr<float>();
+  const float* w1p = w1t.data_ptr<float>();
+  const float* w2p = w2c.data_ptr<float>();
+  float* rp = raw.data_ptr<float>();
+  float* ep = keep_encoded ? encoded.data_ptr<float>() : nullptr;
+  const int64_t blocks = (n + kFuseBlock - 1) / kFuseBlock;
+#pragma omp parallel num_threads(at::get_num_threads())
+  {
+    std::vector<float> scratch(keep_encoded ? 0 : kFuseBlock * out_dim);
+#pragma omp for schedule(static)
+    for (int64_t b = 0; b < blocks; ++b) {
+      const int64_t n0 = b * kFuseBlock, m = std::min(n, n0 + kFuseBlock) - n0;
+      float* e = keep_encoded ? ep + n0 * out_dim : scratch.data();
+      for (int64_t l = 0; l < nl; ++l) {
+        DISPATCH_F(nf, forward_range, xp + 3 * n0, tp, e, 0, m, levels[l], l, out_dim, nf);
+      }
+      int64_t done = 0;
+#if defined(HG_AVX512) || defined(HG_AVX2)
+      if (hidden == 64) done = density_rows64(e, m, out_dim, w1p, w2p, rp + n0);
+#endif
+      density_rows(e + done * out_dim, m - done, out_dim, w1p, w2p, hidden, rp + n0 + done);
+    }
+  }
+  return {raw, encoded};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // the GIL is released while a kernel runs: another Python thread can work meanwhile
   m.def("forward", &hash_forward, "hash encoding forward: (x [N,3], table [R,F], ...) -> [N, L*F]",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("density", &density_forward,
+        "density MLP's first output fused with the encoding: (x, table, ..., w1, w2, keep) -> "
+        "(raw [N], encoded [N, L*F] or empty)",
         py::call_guard<py::gil_scoped_release>());
   m.def("backward", &hash_backward, "hash encoding backward: scatter-add of grad_out into the table",
         py::call_guard<py::gil_scoped_release>());
