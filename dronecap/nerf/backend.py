@@ -1,6 +1,7 @@
 """The one door to the C++/OpenMP kernels: building, caching, and the fallback rule.
 
-The hash grid (``csrc/hashgrid.cpp``) and the ray marcher (``csrc/march.cpp``) are compiled
+The hash grid (``csrc/hashgrid.cpp``), the ray marcher (``csrc/march.cpp``) and the field's
+fused MLPs (``csrc/mlp.cpp``) are compiled
 on first use with ``torch.utils.cpp_extension`` and cached on disk under
 ``$XDG_CACHE_HOME/dronecap/torch_extensions/<name>-<key>`` (``~/.cache`` by default), where
 the key hashes the torch version, the Python version, where torch and the source are installed,
@@ -31,6 +32,7 @@ KERNELS: dict[str, tuple[str, tuple[str, ...]]] = {
     "hashgrid": ("hashgrid.cpp", ()),
     # no fused multiply-add: the float32 results match the reference's tensor arithmetic
     "march": ("march.cpp", ("-ffp-contract=off",)),
+    "mlp": ("mlp.cpp", ()),
 }
 FALLBACK_NOTICE = (
     "dronecap: no working C++ compiler ({err}); using the PyTorch reference kernels, "

@@ -14,6 +14,7 @@ from torch import Tensor, nn
 from .config import TrainConfig, mlp_dtype
 from .far_field import make_far_field
 from .hashgrid import HashGrid
+from .mlp_kernel import field_logits, usable
 from .sh import sh_dim, sh_encode
 
 DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
@@ -88,6 +89,7 @@ class Field(nn.Module):
         a = torch.as_tensor(np.asarray(aabb), dtype=torch.float32)
         self.register_buffer("aabb_min", a[0].clone(), persistent=False)
         self.register_buffer("aabb_size", (a[1] - a[0]).clone(), persistent=False)
+        self._fused_mlp: bool | None = None  # decided on first use (builds the kernel)
 
     def _run(self, mlp: nn.Sequential, x: Tensor, outputs: int | None = None) -> Tensor:
         """Apply ``mlp`` to ``x`` [N, n_in] float32 -> [N, n_out] float32 (only the first
@@ -192,6 +194,35 @@ class Field(nn.Module):
         """
         sigma, geo = self.geometry(points)
         return self.color(geo, dirs), sigma
+
+    def color_sigma(
+        self, points: Tensor, dir_enc: Tensor, ray_indices: Tensor, encoded: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Colour [N, C] in (0, 1) and density [N] per scene unit of samples, with autograd
+        (the training pass).
+
+        Args:
+            points: [N, 3] scene units.
+            dir_enc: [R, sh_degree^2] :meth:`dir_encoding` of each ray's direction.
+            ray_indices: [N] int64, each sample's ray.
+            encoded: as in :meth:`geometry`.
+
+        The fused C++ MLPs (:mod:`nerf.mlp_kernel`) when they can run this field (float32
+        storage and products, the presets' layer shapes), else the torch layers; the same
+        values and gradients up to float32 summation order.
+        """
+        if self._fused_mlp is None:
+            plain = self.dtype == torch.float32 and self.product_dtype == torch.float32
+            self._fused_mlp = plain and usable(
+                self.density_mlp, self.color_mlp, self.encoding.backend
+            )
+        if self._fused_mlp:
+            unit = (points - self.aabb_min) / self.aabb_size
+            enc = self.encoding(unit, cached=encoded)
+            logits = field_logits(enc, dir_enc, ray_indices, self.density_mlp, self.color_mlp)
+            return torch.sigmoid(logits[:, 1:]), trunc_exp(logits[:, 0])
+        sigma, geo = self.geometry(points, encoded)
+        return self.color_from_encoding(geo, dir_enc[ray_indices]), sigma
 
     def color(self, geo: Tensor, dirs: Tensor) -> Tensor:
         """Colour [N, C] in (0, 1) from geometry features [N, geo_features] and unit view

@@ -197,8 +197,7 @@ class Trainer:
         dir_enc = field.dir_encoding(dirs)  # once per ray, gathered per sample
 
         def color_sigma(t0, t1, ri):  # the samples of ``s``, in order
-            sigma, geo = field.geometry(s.midpoints(origins, dirs), s.encoded)
-            return field.color_from_encoding(geo, dir_enc[ri]), sigma
+            return field.color_sigma(s.midpoints(origins, dirs), dir_enc, ri, s.encoded)
 
         behind = field.behind(dirs, bg)  # the far field or the fixed background
         n_rays = origins.shape[0]

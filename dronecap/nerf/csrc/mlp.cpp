@@ -1,0 +1,338 @@
+// The radiance field's two MLPs fused on the CPU, forward and backward, for the training pass.
+//
+// Layers (bias-free, as nerf/field.py builds them; every preset has this shape):
+//   h1 = relu(W1 e)            e: the hash encoding [E]           W1 [H, E]
+//   g  = W2 h1                 g[0]: density logit, g: geometry   W2 [G, H]
+//   h2 = relu(W3 [g, d])       d: SH of the ray's direction [S]   W3 [H, G + S]
+//   h3 = relu(W4 h2)                                              W4 [H, H]
+//   c  = W5 h3                 colour logits [C]                  W5 [C, H]
+// Forward returns [N, 1 + C]: g[0] and c (the density and colour activations stay in torch).
+// Backward recomputes the forward of a tile and returns the gradients of e and of W1..W5.
+//
+// Why: with torch each layer is a matrix product over the whole batch followed by a ReLU pass,
+// and every [N, 64] activation (2 MB at 8k samples) leaves the 2 MB L2 cache between ops; here
+// a tile of 32 samples goes through all layers (and their backward) while it sits in L1, and
+// each product is a register-blocked loop of broadcast multiply-adds.
+//
+// Vectors are GCC vector extensions of 16 floats: one AVX-512 register, two AVX2 registers, or
+// whatever the target has, so the one code path builds everywhere. Widths that are not a
+// multiple of 16 (C = 1 or 3, any E, G, S) are zero-padded in the transposed copies and tiles;
+// padded rows and columns contribute nothing.
+#include <torch/extension.h>
+
+#include <ATen/Parallel.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <cstring>
+#include <memory>
+#include <vector>
+
+namespace {
+
+typedef float v16 __attribute__((vector_size(64)));
+constexpr int kW = 16;     // floats per vector
+constexpr int kTile = 32;  // samples per tile (a multiple of 8)
+
+inline v16 vload(const float* p) {
+  v16 v;
+  std::memcpy(&v, p, sizeof(v));
+  return v;
+}
+inline void vstore(float* p, v16 v) { std::memcpy(p, &v, sizeof(v)); }
+inline int pad16(int n) { return (n + kW - 1) / kW * kW; }
+
+// What a product does with its result before storing it.
+enum Out { kPlain, kRelu, kMask };
+
+// Y[p, :] = sum_k X[p, k] * M[k, :] for P rows p, with NV vectors of output per row.
+// X [P, ldx] (n_in used), M [n_in, NV*16], Y [P, ldy]; kRelu stores max(y, 0), kMask stores y
+// where mask[p, :] > 0 and 0 elsewhere (the ReLU's backward; mask has Y's layout).
+template <int P, int NV>
+inline void rows(const float* x, int ldx, int n_in, const float* m, float* y, int ldy, Out out,
+                 const float* mask) {
+  v16 acc[P][NV];
+  for (int p = 0; p < P; ++p)
+    for (int q = 0; q < NV; ++q) acc[p][q] = v16{};
+  for (int k = 0; k < n_in; ++k) {
+    v16 w[NV];
+    for (int q = 0; q < NV; ++q) w[q] = vload(m + k * NV * kW + q * kW);
+    for (int p = 0; p < P; ++p) {
+      const float s = x[p * ldx + k];
+      for (int q = 0; q < NV; ++q) acc[p][q] += s * w[q];
+    }
+  }
+  for (int p = 0; p < P; ++p) {
+    for (int q = 0; q < NV; ++q) {
+      v16 v = acc[p][q];
+      if (out == kRelu) v = v > v16{} ? v : v16{};
+      if (out == kMask) v = vload(mask + p * ldy + q * kW) > v16{} ? v : v16{};
+      vstore(y + p * ldy + q * kW, v);
+    }
+  }
+}
+
+// The product above for a whole tile (kTile rows), output width n_out (a multiple of 16,
+// at most 128); picks row and vector blocking that keep ~16 accumulators in registers.
+void tile_product(const float* x, int ldx, int n_in, const float* m, int n_out, float* y, int ldy,
+                  Out out, const float* mask) {
+  for (int q0 = 0; q0 < n_out; q0 += 4 * kW) {
+    const int nv = std::min(4, (n_out - q0) / kW);
+    const float* mq = m + q0;
+    // M's rows are n_out wide: copy the block's columns contiguously when they are not all
+    float block[128 * 4 * kW];
+    if (nv * kW != n_out) {
+      for (int k = 0; k < n_in; ++k) std::memcpy(block + k * nv * kW, mq + k * n_out, nv * kW * 4);
+      mq = block;
+    }
+    const float* mk = mask ? mask + q0 : nullptr;
+    for (int p = 0; p < kTile; p += (nv >= 2 ? 4 : 8)) {
+      const float* xp = x + p * ldx;
+      float* yp = y + p * ldy + q0;
+      const float* mp = mk ? mk + p * ldy : nullptr;
+      switch (nv) {
+        case 4: rows<4, 4>(xp, ldx, n_in, mq, yp, ldy, out, mp); break;
+        case 3: rows<4, 3>(xp, ldx, n_in, mq, yp, ldy, out, mp); break;
+        case 2: rows<4, 2>(xp, ldx, n_in, mq, yp, ldy, out, mp); break;
+        default: rows<8, 1>(xp, ldx, n_in, mq, yp, ldy, out, mp); break;
+      }
+    }
+  }
+}
+
+// dW[j, :] += sum_p dY[p, j] * X[p, :] over the tile's rows: dW [n_rows, ldw] (ldw a multiple of
+// 16, the X width used), dY [kTile, ldd], X [kTile, ldx]. J rows of dW at a time in registers.
+template <int J, int NV>
+inline void outer_rows(const float* dy, int ldd, const float* x, int ldx, float* dw, int ldw) {
+  v16 acc[J][NV];
+  for (int j = 0; j < J; ++j)
+    for (int q = 0; q < NV; ++q) acc[j][q] = vload(dw + j * ldw + q * kW);
+  for (int p = 0; p < kTile; ++p) {
+    v16 xv[NV];
+    for (int q = 0; q < NV; ++q) xv[q] = vload(x + p * ldx + q * kW);
+    for (int j = 0; j < J; ++j) {
+      const float s = dy[p * ldd + j];
+      for (int q = 0; q < NV; ++q) acc[j][q] += s * xv[q];
+    }
+  }
+  for (int j = 0; j < J; ++j)
+    for (int q = 0; q < NV; ++q) vstore(dw + j * ldw + q * kW, acc[j][q]);
+}
+
+void tile_outer(const float* dy, int ldd, int n_rows, const float* x, int ldx, int width,
+                float* dw) {
+  for (int q0 = 0; q0 < width; q0 += 4 * kW) {
+    const int nv = std::min(4, (width - q0) / kW);
+    int j = 0;
+    for (; j + 4 <= n_rows && nv >= 3; j += 4) {
+      if (nv == 4) outer_rows<4, 4>(dy + j, ldd, x + q0, ldx, dw + j * width + q0, width);
+      else outer_rows<4, 3>(dy + j, ldd, x + q0, ldx, dw + j * width + q0, width);
+    }
+    for (; j + 8 <= n_rows && nv <= 2; j += 8) {
+      if (nv == 2) outer_rows<8, 2>(dy + j, ldd, x + q0, ldx, dw + j * width + q0, width);
+      else outer_rows<8, 1>(dy + j, ldd, x + q0, ldx, dw + j * width + q0, width);
+    }
+    for (; j < n_rows; ++j) {
+      switch (nv) {
+        case 4: outer_rows<1, 4>(dy + j, ldd, x + q0, ldx, dw + j * width + q0, width); break;
+        case 3: outer_rows<1, 3>(dy + j, ldd, x + q0, ldx, dw + j * width + q0, width); break;
+        case 2: outer_rows<1, 2>(dy + j, ldd, x + q0, ldx, dw + j * width + q0, width); break;
+        default: outer_rows<1, 1>(dy + j, ldd, x + q0, ldx, dw + j * width + q0, width); break;
+      }
+    }
+  }
+}
+
+// A [rows, cols] float32 matrix copied into [rows_to, cols_to] zero-padded storage, optionally
+// transposed first.
+std::vector<float> padded(const torch::Tensor& w, bool transpose, int rows_to, int cols_to) {
+  const auto src = (transpose ? w.t() : w).contiguous();
+  const int r = int(src.size(0)), c = int(src.size(1));
+  std::vector<float> out(size_t(rows_to) * cols_to, 0.0f);
+  const float* s = src.data_ptr<float>();
+  for (int i = 0; i < r; ++i) std::memcpy(out.data() + size_t(i) * cols_to, s + size_t(i) * c, c * 4);
+  return out;
+}
+
+struct Dims {
+  int E, H, G, S, C;          // encoding, hidden, geometry, SH, colour widths
+  int Ep, Gp, Cinp, Cp;       // padded to multiples of 16 (Cin = G + S)
+};
+
+// Weights in the layouts the products read: transposed for the forward, padded as needed.
+struct Weights {
+  std::vector<float> w1t, w2t, w3t, w4t, w5t;  // forward: [in, out_padded]
+  std::vector<float> w1, w2, w3, w4, w5;       // backward: [out, in_padded]
+};
+
+Weights prepare(const Dims& d, const torch::Tensor& w1, const torch::Tensor& w2,
+                const torch::Tensor& w3, const torch::Tensor& w4, const torch::Tensor& w5) {
+  const int cin = d.G + d.S;
+  return {padded(w1, true, d.E, d.H),  padded(w2, true, d.H, d.Gp), padded(w3, true, cin, d.H),
+          padded(w4, true, d.H, d.H),  padded(w5, true, d.H, d.Cp), padded(w1, false, d.H, d.Ep),
+          padded(w2, false, d.G, d.H), padded(w3, false, d.H, d.Cinp), padded(w4, false, d.H, d.H),
+          padded(w5, false, d.C, d.H)};
+}
+
+// One tile's inputs and activations (rows beyond the batch are zeros).
+struct Tile {
+  alignas(64) float e[kTile * 128];
+  alignas(64) float cin[kTile * 128];
+  alignas(64) float h1[kTile * 128];
+  alignas(64) float g[kTile * 128];
+  alignas(64) float h2[kTile * 128];
+  alignas(64) float h3[kTile * 128];
+  alignas(64) float c[kTile * 16];
+};
+
+// Loads rows [n0, n0 + m) of e and the SH rows of their rays, then runs the forward.
+void forward_tile(const Dims& d, const Weights& w, const float* e, const float* sh,
+                  const int64_t* ri, int64_t n0, int m, Tile& t) {
+  std::fill(t.e, t.e + kTile * d.Ep, 0.0f);
+  std::fill(t.cin, t.cin + kTile * d.Cinp, 0.0f);
+  for (int p = 0; p < m; ++p) {
+    std::memcpy(t.e + p * d.Ep, e + (n0 + p) * d.E, d.E * 4);
+    std::memcpy(t.cin + p * d.Cinp + d.G, sh + ri[n0 + p] * d.S, d.S * 4);
+  }
+  tile_product(t.e, d.Ep, d.E, w.w1t.data(), d.H, t.h1, d.H, kRelu, nullptr);
+  tile_product(t.h1, d.H, d.H, w.w2t.data(), d.Gp, t.g, d.Gp, kPlain, nullptr);
+  for (int p = 0; p < kTile; ++p) std::memcpy(t.cin + p * d.Cinp, t.g + p * d.Gp, d.G * 4);
+  tile_product(t.cin, d.Cinp, d.G + d.S, w.w3t.data(), d.H, t.h2, d.H, kRelu, nullptr);
+  tile_product(t.h2, d.H, d.H, w.w4t.data(), d.H, t.h3, d.H, kRelu, nullptr);
+  tile_product(t.h3, d.H, d.H, w.w5t.data(), d.Cp, t.c, d.Cp, kPlain, nullptr);
+}
+
+Dims dims_of(const torch::Tensor& e, const torch::Tensor& sh, const torch::Tensor& ri,
+             const torch::Tensor& w1, const torch::Tensor& w2, const torch::Tensor& w3,
+             const torch::Tensor& w4, const torch::Tensor& w5) {
+  for (const auto* t : {&e, &sh, &w1, &w2, &w3, &w4, &w5}) {
+    TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == torch::kFloat32 && t->dim() == 2,
+                "float32 CPU matrices expected");
+  }
+  TORCH_CHECK(ri.scalar_type() == torch::kInt64 && ri.dim() == 1 && ri.size(0) == e.size(0),
+              "ray_indices must be int64 [N]");
+  Dims d;
+  d.E = int(e.size(1)), d.H = int(w1.size(0)), d.G = int(w2.size(0)), d.S = int(sh.size(1));
+  d.C = int(w5.size(0));
+  TORCH_CHECK(d.H % kW == 0 && d.H <= 128, "hidden width must be a multiple of 16, at most 128");
+  TORCH_CHECK(d.E <= 128 && d.G + d.S <= 128 && d.C <= 16, "layer widths out of range");
+  TORCH_CHECK(w1.size(1) == d.E && w2.size(1) == d.H && w3.size(0) == d.H &&
+                  w3.size(1) == d.G + d.S && w4.size(0) == d.H && w4.size(1) == d.H &&
+                  w5.size(1) == d.H,
+              "weight shapes do not chain");
+  d.Ep = pad16(d.E), d.Gp = pad16(d.G), d.Cinp = pad16(d.G + d.S), d.Cp = pad16(d.C);
+  return d;
+}
+
+}  // namespace
+
+// e [N, E] encodings, sh [R, S] SH of each ray's direction, ri [N] each sample's ray.
+// Returns [N, 1 + C]: the density logit and the colour logits.
+torch::Tensor mlp_forward(torch::Tensor e, torch::Tensor sh, torch::Tensor ri, torch::Tensor w1,
+                          torch::Tensor w2, torch::Tensor w3, torch::Tensor w4, torch::Tensor w5) {
+  e = e.contiguous(), sh = sh.contiguous(), ri = ri.contiguous();
+  const Dims d = dims_of(e, sh, ri, w1, w2, w3, w4, w5);
+  const Weights w = prepare(d, w1, w2, w3, w4, w5);
+  const int64_t n = e.size(0);
+  auto out = torch::empty({n, 1 + d.C}, e.options());
+  const float *ep = e.data_ptr<float>(), *sp = sh.data_ptr<float>();
+  const int64_t* rp = ri.data_ptr<int64_t>();
+  float* op = out.data_ptr<float>();
+  const int64_t tiles = (n + kTile - 1) / kTile;
+#pragma omp parallel num_threads(at::get_num_threads())
+  {
+    std::unique_ptr<Tile> t(new Tile);
+#pragma omp for schedule(static)
+    for (int64_t b = 0; b < tiles; ++b) {
+      const int64_t n0 = b * kTile;
+      const int m = int(std::min<int64_t>(kTile, n - n0));
+      forward_tile(d, w, ep, sp, rp, n0, m, *t);
+      for (int p = 0; p < m; ++p) {
+        float* o = op + (n0 + p) * (1 + d.C);
+        o[0] = t->g[p * d.Gp];
+        std::memcpy(o + 1, t->c + p * d.Cp, d.C * 4);
+      }
+    }
+  }
+  return out;
+}
+
+// grad [N, 1 + C] of the forward's output; returns {grad_e [N, E], grad_w1, ..., grad_w5}.
+std::vector<torch::Tensor> mlp_backward(torch::Tensor grad, torch::Tensor e, torch::Tensor sh,
+                                        torch::Tensor ri, torch::Tensor w1, torch::Tensor w2,
+                                        torch::Tensor w3, torch::Tensor w4, torch::Tensor w5) {
+  e = e.contiguous(), sh = sh.contiguous(), ri = ri.contiguous(), grad = grad.contiguous();
+  const Dims d = dims_of(e, sh, ri, w1, w2, w3, w4, w5);
+  TORCH_CHECK(grad.scalar_type() == torch::kFloat32 && grad.size(0) == e.size(0) &&
+                  grad.size(1) == 1 + d.C, "grad must be float32 [N, 1 + C]");
+  const Weights w = prepare(d, w1, w2, w3, w4, w5);
+  const int64_t n = e.size(0);
+  const int cin = d.G + d.S;
+  // per-thread weight gradients, laid out [out, in_padded] as the backward weights
+  const size_t s1 = size_t(d.H) * d.Ep, s2 = size_t(d.G) * d.H, s3 = size_t(d.H) * d.Cinp;
+  const size_t s4 = size_t(d.H) * d.H, s5 = size_t(d.C) * d.H, all = s1 + s2 + s3 + s4 + s5;
+  const int nt = at::get_num_threads();
+  std::vector<float> acc(size_t(nt) * all, 0.0f);
+  auto grad_e = torch::empty({n, d.E}, e.options());
+  const float *ep = e.data_ptr<float>(), *sp = sh.data_ptr<float>(), *gp = grad.data_ptr<float>();
+  const int64_t* rp = ri.data_ptr<int64_t>();
+  float* gep = grad_e.data_ptr<float>();
+  const int64_t tiles = (n + kTile - 1) / kTile;
+#pragma omp parallel num_threads(nt)
+  {
+    std::unique_ptr<Tile> t(new Tile), dt(new Tile);  // activations and their gradients
+    float* a = acc.data() + size_t(omp_get_thread_num()) * all;
+    float *a1 = a, *a2 = a1 + s1, *a3 = a2 + s2, *a4 = a3 + s3, *a5 = a4 + s4;
+#pragma omp for schedule(static)
+    for (int64_t b = 0; b < tiles; ++b) {
+      const int64_t n0 = b * kTile;
+      const int m = int(std::min<int64_t>(kTile, n - n0));
+      forward_tile(d, w, ep, sp, rp, n0, m, *t);
+      // dc: colour-logit gradients (padded to Cp); rows beyond m are zero
+      std::fill(dt->c, dt->c + kTile * d.Cp, 0.0f);
+      for (int p = 0; p < m; ++p) std::memcpy(dt->c + p * d.Cp, gp + (n0 + p) * (1 + d.C) + 1, d.C * 4);
+      tile_product(dt->c, d.Cp, d.C, w.w5.data(), d.H, dt->h3, d.H, kMask, t->h3);
+      tile_outer(dt->c, d.Cp, d.C, t->h3, d.H, d.H, a5);
+      tile_product(dt->h3, d.H, d.H, w.w4.data(), d.H, dt->h2, d.H, kMask, t->h2);
+      tile_outer(dt->h3, d.H, d.H, t->h2, d.H, d.H, a4);
+      tile_product(dt->h2, d.H, d.H, w.w3.data(), d.Cinp, dt->cin, d.Cinp, kPlain, nullptr);
+      tile_outer(dt->h2, d.H, d.H, t->cin, d.Cinp, d.Cinp, a3);
+      // dg: the geometry part of dcin, plus the density logit's gradient on g[0]
+      for (int p = 0; p < kTile; ++p) {
+        float* dg = dt->g + p * d.Gp;
+        std::memcpy(dg, dt->cin + p * d.Cinp, d.G * 4);
+        std::fill(dg + d.G, dg + d.Gp, 0.0f);
+        if (p < m) dg[0] += gp[(n0 + p) * (1 + d.C)];
+      }
+      tile_product(dt->g, d.Gp, d.G, w.w2.data(), d.H, dt->h1, d.H, kMask, t->h1);
+      tile_outer(dt->g, d.Gp, d.G, t->h1, d.H, d.H, a2);
+      tile_product(dt->h1, d.H, d.H, w.w1.data(), d.Ep, dt->e, d.Ep, kPlain, nullptr);
+      tile_outer(dt->h1, d.H, d.H, t->e, d.Ep, d.Ep, a1);
+      for (int p = 0; p < m; ++p) std::memcpy(gep + (n0 + p) * d.E, dt->e + p * d.Ep, d.E * 4);
+    }
+  }
+  // sum the threads' gradients and drop the padding
+  for (int k = 1; k < nt; ++k)
+    for (size_t i = 0; i < all; ++i) acc[i] += acc[size_t(k) * all + i];
+  auto unpad = [&](const float* src, int rows_, int ld, int cols) {
+    auto out = torch::empty({rows_, cols}, e.options());
+    float* o = out.data_ptr<float>();
+    for (int i = 0; i < rows_; ++i) std::memcpy(o + size_t(i) * cols, src + size_t(i) * ld, cols * 4);
+    return out;
+  };
+  const float* a = acc.data();
+  return {grad_e,
+          unpad(a, d.H, d.Ep, d.E),
+          unpad(a + s1, d.G, d.H, d.H),
+          unpad(a + s1 + s2, d.H, d.Cinp, cin),
+          unpad(a + s1 + s2 + s3, d.H, d.H, d.H),
+          unpad(a + s1 + s2 + s3 + s4, d.C, d.H, d.H)};
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &mlp_forward, "fused field MLPs: (e, sh, ri, w1..w5) -> [N, 1 + C] logits",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("backward", &mlp_backward, "fused field MLPs' backward: -> grad_e, grad_w1..grad_w5",
+        py::call_guard<py::gil_scoped_release>());
+}

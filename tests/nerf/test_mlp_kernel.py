@@ -1,0 +1,109 @@
+"""The fused C++ MLPs of the training pass: the torch layers' values and gradients."""
+
+import numpy as np
+import pytest
+import torch
+
+from dronecap.nerf.backend import kernel
+from dronecap.nerf.config import preset
+from dronecap.nerf.field import Field
+from dronecap.nerf.mlp_kernel import field_logits, usable
+
+AABB = np.array([[-1.0, -1, -1], [1, 1, 1]])
+needs_kernel = pytest.mark.skipif(
+    kernel("mlp", "auto") is None, reason="C++ MLP kernel unavailable"
+)
+
+
+def _field(channels: int = 3, **changes) -> Field:
+    torch.manual_seed(0)
+    f = Field(preset("scene-sized").replace(n_max=64, **changes), channels, AABB)
+    with torch.no_grad():
+        for p in f.parameters():
+            p.mul_(3)  # weights large enough that many ReLUs are on and logits are O(1)
+    return f
+
+
+def _torch_logits(f: Field, enc: torch.Tensor, dir_enc: torch.Tensor, ri: torch.Tensor):
+    h = f._run(f.density_mlp, enc)
+    return torch.cat([h[:, :1], f._run(f.color_mlp, torch.cat([h, dir_enc[ri]], -1))], 1)
+
+
+def _samples(f: Field, n: int, rays: int, seed: int = 1):
+    g = torch.Generator().manual_seed(seed)
+    enc = torch.randn(n, f.encoding.out_dim, generator=g) * 0.3
+    dirs = torch.nn.functional.normalize(torch.randn(rays, 3, generator=g), dim=-1)
+    ri = torch.sort(torch.randint(0, rays, (n,), generator=g)).values
+    return enc, f.dir_encoding(dirs), ri
+
+
+@needs_kernel
+@pytest.mark.parametrize(
+    "channels, changes",
+    [(3, {}), (1, {}), (3, {"hidden": 32}), (3, {"hidden": 48, "geo_features": 15}),
+     (3, {"levels": 5, "features": 3})],
+)  # fmt: skip
+def test_fused_logits_and_gradients_match_the_torch_layers(channels, changes):
+    f = _field(channels, **changes)
+    assert usable(f.density_mlp, f.color_mlp, "auto")
+    weights = [m.weight for m in (*f.density_mlp, *f.color_mlp) if isinstance(m, torch.nn.Linear)]
+    for n in (0, 1, 33, 1000):  # empty, a partial tile, several tiles
+        enc, dir_enc, ri = _samples(f, n, rays=max(n // 7, 1))
+        e1, e2 = enc.clone().requires_grad_(), enc.clone().requires_grad_()
+        want = _torch_logits(f, e1, dir_enc, ri)
+        got = field_logits(e2, dir_enc, ri, f.density_mlp, f.color_mlp)
+        assert got.shape == (n, 1 + channels)
+        assert torch.allclose(got, want, rtol=1e-5, atol=1e-5)
+        if n == 0:
+            continue
+        g = torch.randn(want.shape, generator=torch.Generator().manual_seed(n))
+        grads_want = torch.autograd.grad(want, [e1, *weights], g)
+        grads_got = torch.autograd.grad(got, [e2, *weights], g)
+        for a, b in zip(grads_want, grads_got, strict=True):
+            assert a.shape == b.shape
+            assert torch.allclose(b, a, rtol=1e-4, atol=1e-4 * float(a.abs().max()))
+
+
+@needs_kernel
+def test_field_colour_and_density_of_samples_follow_the_torch_path():
+    fused, plain = _field(), _field()
+    plain._fused_mlp = False  # the torch layers
+    pts = torch.rand(500, 3) * 2 - 1
+    _, dir_enc, ri = _samples(fused, 500, rays=60)
+    c1, s1 = fused.color_sigma(pts, dir_enc, ri)
+    c2, s2 = plain.color_sigma(pts, dir_enc, ri)
+    assert fused._fused_mlp and torch.allclose(c1, c2, atol=1e-6)
+    assert torch.allclose(s1, s2, rtol=1e-5)
+    (c1.sum() + s1.sum()).backward()
+    (c2.sum() + s2.sum()).backward()
+    for a, b in zip(fused.parameters(), plain.parameters(), strict=True):
+        assert torch.allclose(a.grad, b.grad, rtol=1e-4, atol=1e-4 * float(b.grad.abs().max()))
+
+
+@needs_kernel
+def test_huge_and_zero_weights_stay_finite():
+    f = _field()
+    enc, dir_enc, ri = _samples(f, 64, rays=8)
+    with torch.no_grad():
+        f.density_mlp[-1].weight.mul_(1e6)
+        f.color_mlp[-1].weight.mul_(1e6)
+    pts = torch.rand(64, 3) * 2 - 1
+    c, s = f.color_sigma(pts, dir_enc, ri)
+    assert torch.isfinite(c).all() and torch.isfinite(s).all() and (s >= 0).all()
+    with torch.no_grad():
+        for p in f.parameters():
+            p.zero_()
+    c, s = f.color_sigma(pts, dir_enc, ri)
+    assert torch.equal(c, torch.full_like(c, 0.5)) and torch.equal(s, torch.ones_like(s))
+
+
+def test_other_shapes_and_precisions_use_the_torch_layers():
+    assert not usable(_field(density_layers=2).density_mlp, _field().color_mlp, "auto")
+    assert not usable(_field().density_mlp, _field(color_layers=1).color_mlp, "auto")
+    assert not usable(_field(hidden=40).density_mlp, _field(hidden=40).color_mlp, "auto")
+    assert not usable(_field().density_mlp, _field().color_mlp, "torch")
+    for changes in ({"precision": "fp16"}, {"mlp_dtype": "bf16"}):
+        f = _field(**changes)
+        _, dir_enc, ri = _samples(f, 10, rays=2)
+        f.color_sigma(torch.rand(10, 3), dir_enc, ri)
+        assert f._fused_mlp is False
