@@ -58,13 +58,18 @@ def visible(
     """
     if min_transmittance <= 0:
         return s
-    sigma, encoded = field.density_and_encoding(s.midpoints(origins, dirs))
-    ri = s.ray_indices
-    _, trans = packed_weights(sigma * (s.t_ends - s.t_starts), ri, s.counts.numel())
-    keep = (trans > min_transmittance).nonzero().squeeze(1)
+    points, ri = s.midpoints(origins, dirs), s.ray_indices
+    fused = field.visible_samples(points, (s.t_starts, s.t_ends, ri), min_transmittance)
+    if fused is not None:  # the same samples, in one C++ call
+        keep, encoded = fused
+    else:
+        sigma, encoded = field.density_and_encoding(points)
+        _, trans = packed_weights(sigma * (s.t_ends - s.t_starts), ri, s.counts.numel())
+        keep = (trans > min_transmittance).nonzero().squeeze(1)
+        encoded = encoded[keep]
     ri = ri[keep]
     counts = torch.bincount(ri, minlength=s.counts.numel())
-    return Samples(ri, s.t_starts[keep], s.t_ends[keep], counts, encoded=encoded[keep])
+    return Samples(ri, s.t_starts[keep], s.t_ends[keep], counts, encoded=encoded)
 
 
 @dataclass

@@ -172,15 +172,38 @@ class Field(nn.Module):
         float32 summation order), else one after the other.
         """
         unit = (points - self.aabb_min) / self.aabb_size
-        layers = [m for m in self.density_mlp if isinstance(m, nn.Linear)]
-        if len(layers) == 2 and self.product_dtype == torch.float32:
-            fused = self.encoding.fused_density(
-                unit, layers[0].weight, layers[1].weight[0], keep_encoded
-            )
+        layers = self._density_rows()
+        if layers is not None:
+            fused = self.encoding.fused_density(unit, *layers, keep_encoded)
             if fused is not None:
                 return trunc_exp(fused[0]), fused[1]
         encoded = self.encoding(unit)
         return self.density_from_encoding(encoded), (encoded if keep_encoded else None)
+
+    @torch.no_grad()
+    def visible_samples(
+        self, points: Tensor, samples: tuple[Tensor, Tensor, Tensor], min_transmittance: float
+    ) -> tuple[Tensor, Tensor] | None:
+        """Compaction's pre-pass fused in C++ (:meth:`HashGrid.fused_visible`): of packed
+        samples at ``points`` [S, 3] (scene units) with ``samples`` = (t_starts, t_ends,
+        ray_indices), the indices [K] of those whose transmittance is above
+        ``min_transmittance`` and their hash encodings [K, levels * features]; None when the
+        fused kernels cannot run this field (:meth:`density_and_encoding`'s conditions)."""
+        layers = self._density_rows()
+        if layers is None:
+            return None
+        unit = (points - self.aabb_min) / self.aabb_size
+        return self.encoding.fused_visible(
+            unit, samples, *layers, MAX_LOG_DENSITY, min_transmittance
+        )
+
+    def _density_rows(self) -> tuple[Tensor, Tensor] | None:
+        """(hidden-layer weight, the density's output row) of a density MLP of one hidden
+        layer multiplying in float32, which the fused C++ queries take; else None."""
+        layers = [m for m in self.density_mlp if isinstance(m, nn.Linear)]
+        if len(layers) != 2 or self.product_dtype != torch.float32:
+            return None
+        return layers[0].weight, layers[1].weight[0]
 
     def forward(self, points: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         """Colour and density.

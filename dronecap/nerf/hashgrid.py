@@ -205,14 +205,50 @@ class HashGrid(torch.nn.Module):
             are never written (compaction's pre-pass and the occupancy updates query ~20-50k
             points a step).
         """
-        if self.dtype != torch.float32 or kernel("hashgrid", self.backend) is None:
+        if not self._fusable():
             return None
         raw, encoded = load_extension().density(
-            x.float().contiguous(), self.table.detach().contiguous(), self.resolutions,
-            self.offsets, self.log2_hashmap, w1.detach().float(), w2.detach().float(),
+            x.float().contiguous(), *self._table_args(), w1.detach().float(), w2.detach().float(),
             keep_encoded,
         )  # fmt: skip
         return raw, (encoded if keep_encoded else None)
+
+    @torch.no_grad()
+    def fused_visible(
+        self, x: Tensor, samples: tuple[Tensor, Tensor, Tensor], w1: Tensor, w2: Tensor,
+        max_log_density: float, min_transmittance: float,
+    ) -> tuple[Tensor, Tensor] | None:  # fmt: skip
+        """Compaction's pre-pass in one C++ call (None as :meth:`fused_density`): the density
+        exp(clamp(w2 . relu(w1 @ encoding), +-max_log_density)) of packed samples, each
+        ray's transmittance before each sample (as :func:`nerf.volrend.packed_weights`), and
+        the samples where it is above ``min_transmittance``.
+
+        Args:
+            x: [S, 3] the samples' midpoints in the unit cube.
+            samples: (t_starts [S], t_ends [S] scene units, ray_indices [S] int64 non-decreasing).
+            w1, w2: as in :meth:`fused_density`.
+
+        Returns:
+            (indices [K] int64 of the kept samples, in order; their encodings [K, levels *
+            features]).
+        """
+        if not self._fusable():
+            return None
+        t0, t1, ri = samples
+        keep, encoded = load_extension().visible(
+            x.float().contiguous(), t0.float(), t1.float(), ri.long(), *self._table_args(),
+            w1.detach().float(), w2.detach().float(), max_log_density, min_transmittance,
+        )  # fmt: skip
+        return keep, encoded
+
+    def _fusable(self) -> bool:
+        """Whether the fused C++ queries can run: float32 storage and the C++ kernel."""
+        return self.dtype == torch.float32 and kernel("hashgrid", self.backend) is not None
+
+    def _table_args(self) -> tuple:
+        """The table and level layout as the C++ kernels take them."""
+        table = self.table.detach().contiguous()
+        return table, self.resolutions, self.offsets, self.log2_hashmap
 
     @torch.no_grad()
     def round_storage_(self) -> None:

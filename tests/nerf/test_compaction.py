@@ -33,6 +33,7 @@ def _wall_field() -> Field:
         f.density_from_encoding(f.encode(p)),
         f.encode(p),
     )
+    f.visible_samples = lambda *args: None  # type: ignore  # not the fused C++ pre-pass
     return f
 
 
@@ -165,3 +166,27 @@ def test_without_a_pre_pass_the_rays_cut_off_by_the_batch_do_not_count_as_marche
     logs = tr.train(30)
     n = tr.sample_counts()
     assert n["marched"] == n["trained"] == sum(log["samples"] for log in logs) > 0
+
+
+@pytest.mark.skipif(kernel("hashgrid", "auto") is None, reason="C++ hash-grid kernel unavailable")
+def test_the_fused_pre_pass_keeps_the_samples_the_torch_one_keeps():
+    o, d = _rays(40)
+    tn, tf, _ = ray_aabb(o, d, BOX)
+    s = march(o, d, tn, tf, 0.02, None, BOX, 1000)
+    for scale in (0.0, 1.0, 3.0, 30.0):  # empty, foggy, opaque, past the density clamp
+        fused = _field()
+        with torch.no_grad():
+            fused.encoding.table.uniform_(-1, 1)
+            fused.density_mlp[-1].weight.mul_(scale)
+        plain = _field()
+        plain.load_state_dict(fused.state_dict())
+        plain.visible_samples = lambda *args: None  # the torch pre-pass
+        for thresh in (1e-4, 0.5):
+            a, b = visible(s, o, d, fused, thresh), visible(s, o, d, plain, thresh)
+            assert torch.equal(a.ray_indices, b.ray_indices) and torch.equal(a.counts, b.counts)
+            assert torch.equal(a.t_starts, b.t_starts) and torch.equal(a.encoded, b.encoded)
+        kept = visible(s, o, d, fused, 1e-4).n
+        if scale == 0.0:
+            assert kept == s.n  # density exp(0) = 1 per unit over ~2 units of ray: all kept
+        if scale == 30.0:
+            assert kept < s.n

@@ -580,11 +580,11 @@ int64_t density_rows64(const float* e, int64_t n, int64_t in_dim, const float* w
 // encoding: a block of points is encoded into a buffer that stays in cache and goes through the
 // MLP (one hidden layer of ReLUs, bias-free) before the next block, so the [N, hidden]
 // activations never reach memory. w1 [hidden, L*F] and w2 [hidden] (the last layer's first row).
-// Returns {raw [N], encoded [N, L*F] (empty unless keep_encoded)}.
-std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
-                                           std::vector<int64_t> resolutions,
-                                           std::vector<int64_t> offsets, int64_t log2_hashmap,
-                                           torch::Tensor w1, torch::Tensor w2, bool keep_encoded) {
+// Writes raw [N] and, when `ep` is not null, the encodings [N, L*F].
+void encode_density(const torch::Tensor& x, const torch::Tensor& table,
+                    const std::vector<int64_t>& resolutions, const std::vector<int64_t>& offsets,
+                    int64_t log2_hashmap, const torch::Tensor& w1, const torch::Tensor& w2,
+                    float* rp, float* ep) {
   check_inputs(x, table);
   const auto levels = make_levels(resolutions, offsets, log2_hashmap);
   TORCH_CHECK(table.size(0) == offsets.back(), "table has ", table.size(0), " rows, expected ",
@@ -599,22 +599,18 @@ std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
               "w2 must be float32 [hidden]");
   const auto w1t = w1.t().contiguous();
   const auto w2c = w2.reshape({hidden}).contiguous();
-  auto raw = torch::empty({n}, x.options());
-  auto encoded = keep_encoded ? torch::empty({n, out_dim}, x.options()) : torch::empty({0}, x.options());
   const float* xp = x.data_ptr<float>();
   const float* tp = table.data_ptr<float>();
   const float* w1p = w1t.data_ptr<float>();
   const float* w2p = w2c.data_ptr<float>();
-  float* rp = raw.data_ptr<float>();
-  float* ep = keep_encoded ? encoded.data_ptr<float>() : nullptr;
   const int64_t blocks = (n + kFuseBlock - 1) / kFuseBlock;
 #pragma omp parallel num_threads(at::get_num_threads())
   {
-    std::vector<float> scratch(keep_encoded ? 0 : kFuseBlock * out_dim);
+    std::vector<float> scratch(ep ? 0 : kFuseBlock * out_dim);
 #pragma omp for schedule(static)
     for (int64_t b = 0; b < blocks; ++b) {
       const int64_t n0 = b * kFuseBlock, m = std::min(n, n0 + kFuseBlock) - n0;
-      float* e = keep_encoded ? ep + n0 * out_dim : scratch.data();
+      float* e = ep ? ep + n0 * out_dim : scratch.data();
       for (int64_t l = 0; l < nl; ++l) {
         DISPATCH_F(nf, forward_range, xp + 3 * n0, tp, e, 0, m, levels[l], l, out_dim, nf);
       }
@@ -625,7 +621,68 @@ std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
       density_rows(e + done * out_dim, m - done, out_dim, w1p, w2p, hidden, rp + n0 + done);
     }
   }
+}
+
+// Returns {raw [N], encoded [N, L*F] (empty unless keep_encoded)}.
+std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
+                                           std::vector<int64_t> resolutions,
+                                           std::vector<int64_t> offsets, int64_t log2_hashmap,
+                                           torch::Tensor w1, torch::Tensor w2, bool keep_encoded) {
+  const int64_t n = x.size(0), out_dim = int64_t(resolutions.size()) * table.size(1);
+  auto raw = torch::empty({n}, x.options());
+  auto encoded = torch::empty({keep_encoded ? n : 0, out_dim}, x.options());
+  encode_density(x, table, resolutions, offsets, log2_hashmap, w1, w2, raw.data_ptr<float>(),
+                 keep_encoded ? encoded.data_ptr<float>() : nullptr);
   return {raw, encoded};
+}
+
+// Compaction's pre-pass in one call: the density of packed samples (unit-cube midpoints x [S, 3],
+// intervals [t_start, t_end) in scene units, ray_indices [S] non-decreasing), each ray's
+// transmittance before each sample (exp of minus the optical thickness summed in double, as
+// nerf/volrend.packed_weights), and the samples where it is above min_transmittance.
+// Density = exp(raw clamped to +-max_log_density); thickness = density * length, NaN -> 0,
+// clamped to [0, 1e4] (the reference's rules). Returns {kept sample indices int64 [K], their
+// encodings [K, L*F]}.
+std::vector<torch::Tensor> visible_forward(torch::Tensor x, torch::Tensor t_starts,
+                                           torch::Tensor t_ends, torch::Tensor ray_indices,
+                                           torch::Tensor table, std::vector<int64_t> resolutions,
+                                           std::vector<int64_t> offsets, int64_t log2_hashmap,
+                                           torch::Tensor w1, torch::Tensor w2,
+                                           double max_log_density, double min_transmittance) {
+  const int64_t n = x.size(0), out_dim = int64_t(resolutions.size()) * table.size(1);
+  TORCH_CHECK(t_starts.scalar_type() == torch::kFloat32 && t_ends.scalar_type() == torch::kFloat32 &&
+                  ray_indices.scalar_type() == torch::kInt64 && t_starts.numel() == n &&
+                  t_ends.numel() == n && ray_indices.numel() == n,
+              "t_starts, t_ends float32 [S] and ray_indices int64 [S] expected");
+  auto raw = torch::empty({n}, x.options());
+  auto encoded = torch::empty({n, out_dim}, x.options());
+  float* rp = raw.data_ptr<float>();
+  const float* ep = encoded.data_ptr<float>();
+  encode_density(x, table, resolutions, offsets, log2_hashmap, w1, w2, rp, encoded.data_ptr<float>());
+  const auto t0 = t_starts.contiguous(), t1 = t_ends.contiguous(), ri = ray_indices.contiguous();
+  const float *t0p = t0.data_ptr<float>(), *t1p = t1.data_ptr<float>();
+  const int64_t* rip = ri.data_ptr<int64_t>();
+  const float lim = float(max_log_density);
+  // transmittance exp(-before) > min_transmittance, as a bound on the thickness (no exp)
+  const double most = min_transmittance > 0 ? -std::log(min_transmittance) : INFINITY;
+  std::vector<int64_t> keep;
+  keep.reserve(n);
+  double before = 0.0;  // optical thickness of the ray's samples so far
+  for (int64_t i = 0; i < n; ++i) {
+    if (i == 0 || rip[i] != rip[i - 1]) before = 0.0;
+    if (before < most) keep.push_back(i);
+    float tau = std::exp(std::fmin(std::fmax(rp[i], -lim), lim)) * (t1p[i] - t0p[i]);
+    tau = std::isnan(tau) || std::isnan(rp[i]) ? 0.0f : std::fmin(std::fmax(tau, 0.0f), 1e4f);
+    before += double(tau);
+  }
+  const int64_t k = int64_t(keep.size());
+  auto idx = torch::empty({k}, ray_indices.options());
+  std::memcpy(idx.data_ptr<int64_t>(), keep.data(), k * sizeof(int64_t));
+  auto kept = torch::empty({k, out_dim}, x.options());
+  float* kp = kept.data_ptr<float>();
+#pragma omp parallel for schedule(static) num_threads(at::get_num_threads())
+  for (int64_t j = 0; j < k; ++j) std::memcpy(kp + j * out_dim, ep + keep[j] * out_dim, out_dim * 4);
+  return {idx, kept};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -635,6 +692,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("density", &density_forward,
         "density MLP's first output fused with the encoding: (x, table, ..., w1, w2, keep) -> "
         "(raw [N], encoded [N, L*F] or empty)",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("visible", &visible_forward,
+        "compaction's pre-pass: (x, t_starts, t_ends, ray_indices, table, ..., w1, w2, "
+        "max_log_density, min_transmittance) -> (kept indices, their encodings)",
         py::call_guard<py::gil_scoped_release>());
   m.def("backward", &hash_backward, "hash encoding backward: scatter-add of grad_out into the table",
         py::call_guard<py::gil_scoped_release>());
