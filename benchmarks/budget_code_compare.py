@@ -6,8 +6,8 @@ from the Blender files), the simulated corridor and real Himax test_23 (both bui
 in progress stay out) and of ``--previous``, alternating: test PSNR over all test views, steps
 trained and the median step. A change that makes steps faster without changing their
 arithmetic shows here as more steps and more dB in the same seconds (``time_to_quality.py
-compare`` compares settings of one code in one process instead). Runs are kept under ``--cache`` and reused when they finished,
-so an interrupted comparison resumes.
+compare`` compares settings of one code in one process instead). Runs are kept under
+``--cache`` and reused when they finished, so an interrupted comparison resumes.
 
     PYTHONPATH=. .venv/bin/python benchmarks/budget_code_compare.py --previous 3276441 \\
         --budgets 10 60 --rounds 2 1 --out time_to_quality_code_s23
