@@ -13,7 +13,7 @@ import torch
 
 from dronecap.camera import Camera
 
-from .marching import Samples, take_rays
+from .marching import Samples
 from .photometric import normalized_radius
 from .rays import frame_rays
 
@@ -79,6 +79,9 @@ def whole_rays(rays: RayBatch, s: Samples, batch_samples: int) -> tuple[RayBatch
     cum = torch.cumsum(s.counts, 0)
     keep = max(int(torch.searchsorted(cum, torch.tensor(batch_samples), right=True)), 1)
     if keep < rays.origins.shape[0]:
-        s = take_rays(s, torch.arange(keep, device=rays.origins.device))
+        # samples are packed by ray: a prefix of rays owns a prefix of samples (views, no copy)
+        n = int(cum[keep - 1])
+        enc = None if s.encoded is None else s.encoded[:n]
+        s = Samples(s.ray_indices[:n], s.t_starts[:n], s.t_ends[:n], s.counts[:keep], encoded=enc)
         rays = rays.head(keep)
     return rays, s

@@ -121,24 +121,6 @@ def march(
     return Samples(ray_indices, t_starts, t_ends, counts, t_resume)
 
 
-def take_rays(samples: Samples, rays: Tensor) -> Samples:
-    """The samples of a prefix of rays: ``rays`` is a sorted int64 index [R'] into the rays,
-    renumbered 0..R'-1 in the result (used to cut a batch at B samples)."""
-    keep = torch.zeros(samples.counts.numel(), dtype=torch.bool, device=rays.device)
-    keep[rays] = True
-    mask = keep[samples.ray_indices]
-    new_id = torch.full_like(samples.counts, -1)
-    new_id[rays] = torch.arange(rays.numel(), device=rays.device)
-    enc = samples.encoded
-    return Samples(
-        new_id[samples.ray_indices[mask]],
-        samples.t_starts[mask],
-        samples.t_ends[mask],
-        samples.counts[rays],
-        encoded=None if enc is None else enc[mask],
-    )
-
-
 def tiles(s: Samples, tile_samples: int) -> Iterator[tuple[int, int, Samples]]:
     """Runs of whole rays holding about ``tile_samples`` samples each, in order.
 

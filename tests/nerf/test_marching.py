@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from dronecap.nerf import occupancy
-from dronecap.nerf.marching import march, take_rays
+from dronecap.nerf.batch import RayBatch, whole_rays
+from dronecap.nerf.marching import march
 from dronecap.nerf.rays import ray_aabb
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -57,12 +58,20 @@ def test_grid_prunes_empty_cells():
     assert len(z) == 5 and all(0.5 <= v <= 1.0 for v in z)
 
 
-def test_take_rays_renumbers():
+def test_whole_rays_cuts_the_batch_at_a_ray_boundary():
     o, d = _rays()
     tn, tf, _ = ray_aabb(o, d, BOX)
     s = march(o, d, tn, tf, 0.25, None, BOX, 1000)
-    t = take_rays(s, torch.tensor([0, 1, 2]))
-    assert t.counts.tolist() == [8, 0, 3] and t.n == 11 and int(t.ray_indices.max()) == 2
+    s.encoded = torch.arange(s.n, dtype=torch.float32)[:, None].expand(-1, 2).contiguous()
+    rays = RayBatch(o, d, torch.zeros(len(o), 3), torch.zeros(len(o), 3), torch.zeros(len(o)),
+                    torch.zeros(len(o)))  # fmt: skip
+    for budget, want in ((11, [8, 0, 3]), (10, [8, 0]), (1, [8])):  # at least one whole ray
+        r, t = whole_rays(rays, s, budget)
+        assert t.counts.tolist() == want and r.origins.shape[0] == len(want)
+        assert t.n == sum(want) and t.ray_indices.tolist() == sorted(t.ray_indices.tolist())
+        assert torch.equal(t.encoded[:, 0], torch.arange(t.n, dtype=torch.float32))
+    r, t = whole_rays(rays, s, s.n)  # everything fits: the batch as it was
+    assert t is s and r is rays
 
 
 def test_grid_schedule_matches_instant_ngp():
