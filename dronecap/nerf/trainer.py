@@ -39,7 +39,7 @@ from .photometric import Photometric
 from .rays import frame_cameras, ray_aabb
 from .render import Volume, render_view
 from .resolve import Resolved, resolve, training_frames
-from .volrend import distortion, render_packed
+from .volrend import composite, distortion, render_packed
 
 MAX_BAD_STEPS = 20  # consecutive non-finite steps before training stops
 PHOTOMETRIC_GROUP = 2  # index of the photometric parameters' Adam group (when it has any)
@@ -201,9 +201,11 @@ class Trainer:
 
         behind = field.behind(dirs, bg)  # the far field or the fixed background
         n_rays = origins.shape[0]
+        if self.cfg.distortion <= 0:  # the colour alone
+            color = composite(s.t_starts, s.t_ends, s.ray_indices, n_rays, color_sigma, behind,
+                              field.encoding.backend)  # fmt: skip
+            return color, color.new_zeros(n_rays)
         out = render_packed(s.t_starts, s.t_ends, s.ray_indices, n_rays, color_sigma, behind)
-        if self.cfg.distortion <= 0:
-            return out.color, out.color.new_zeros(n_rays)
         diag = float(torch.linalg.norm(self.aabb[1] - self.aabb[0]))  # t in AABB diagonals
         t0, t1 = s.t_starts / diag, s.t_ends / diag
         return out.color, distortion(out.weights, t0, t1, s.ray_indices, n_rays)

@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from dronecap.nerf.volrend import distortion, packed_weights, render_packed
+from dronecap.nerf.backend import kernel
+from dronecap.nerf.volrend import composite, distortion, packed_weights, render_packed
 
 
 def _render(sigmas, t0, t1, ri, n_rays, colors, bg):
@@ -92,3 +93,48 @@ def test_distortion_gradients_stay_finite_for_opaque_and_empty_rays():
     d = distortion(w, t0, t0 + 0.1, ri, 3)
     d.sum().backward()
     assert torch.isfinite(d).all() and torch.isfinite(tau.grad).all()
+
+
+def _packed(counts: list[int], seed: int = 0, scale: float = 1.0):
+    g = torch.Generator().manual_seed(seed)
+    ri = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts))
+    t0 = torch.rand(ri.numel(), generator=g) * 2
+    t1 = t0 + torch.rand(ri.numel(), generator=g) * 0.1
+    sigma = torch.rand(ri.numel(), generator=g) * 20 * scale
+    rgb = torch.rand(ri.numel(), 3, generator=g)
+    bg = torch.rand(len(counts), 3, generator=g)
+    return sigma, rgb, t0, t1, ri, bg
+
+
+@pytest.mark.skipif(kernel("march", "auto") is None, reason="C++ kernel unavailable")
+@pytest.mark.parametrize("scale", [0.0, 1.0, 1e3, 1e9])  # empty, fog, opaque, tau past 1e4
+def test_composite_matches_render_packed_in_colour_and_gradients(scale):
+    counts = [5, 0, 1, 40, 7, 0, 3]  # empty rays, one-sample rays, long rays
+    sigma, rgb, t0, t1, ri, bg = _packed(counts, scale=scale)
+    sigma[3] = float("nan")  # a NaN density counts as empty, as in packed_weights
+    grads, colours = [], []
+    for fused in (True, False):
+        s, c, b = (x.clone().requires_grad_() for x in (sigma, rgb, bg))
+        fn = lambda a, e, r, s=s, c=c: (c, s)  # noqa: E731
+        if fused:
+            out = composite(t0, t1, ri, len(counts), fn, b)
+        else:
+            out = render_packed(t0, t1, ri, len(counts), fn, b).color
+        w = torch.randn(out.shape, generator=torch.Generator().manual_seed(1))
+        (out * w).sum().backward()
+        colours.append(out.detach())
+        grads.append([s.grad, c.grad, b.grad])
+    assert torch.allclose(colours[0], colours[1], atol=1e-6)
+    for got, want in zip(*grads, strict=True):
+        assert torch.isfinite(got).all()
+        assert torch.allclose(got, want, rtol=1e-4, atol=1e-6 * max(1.0, float(want.abs().max())))
+
+
+@pytest.mark.skipif(kernel("march", "auto") is None, reason="C++ kernel unavailable")
+def test_composite_of_no_samples_is_the_background():
+    bg = torch.rand(4, 3, requires_grad=True)
+    empty = torch.zeros(0)
+    out = composite(empty, empty, empty.long(), 4, lambda a, b, c: (torch.zeros(0, 3), empty), bg)
+    assert torch.equal(out, bg.detach())
+    out.sum().backward()
+    assert torch.equal(bg.grad, torch.ones(4, 3))

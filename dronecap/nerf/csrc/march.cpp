@@ -10,6 +10,9 @@
 // e the candidates examined, is where a next call continues the ray (>= t_far: it is done).
 // Each thread owns a contiguous run of rays and collects its samples in a private buffer; the
 // buffers are then copied out in ray order.
+//
+// Also here: compositing packed samples into ray colours and its backward (nerf/volrend.py's
+// `composite`), one pass over the samples in ray order.
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
@@ -130,8 +133,119 @@ std::vector<torch::Tensor> march(torch::Tensor origins, torch::Tensor dirs, torc
   return {ray_indices, t_starts, t_ends, counts, t_resume};
 }
 
+namespace {
+
+// A sample's optical thickness by the reference's rules (nerf/volrend.packed_weights): NaN -> 0,
+// clamped to [0, 1e4]; `live` is whether its gradient passes (not NaN, not clamped).
+inline float thickness(float sigma, float length, bool& live) {
+  const float tau = sigma * length;
+  live = tau >= 0.0f && tau <= 1e4f;
+  if (std::isnan(tau)) return 0.0f;
+  return std::fmin(std::fmax(tau, 0.0f), 1e4f);
+}
+
+void check_composite(const torch::Tensor& sigma, const torch::Tensor& rgb, const torch::Tensor& t0,
+                     const torch::Tensor& t1, const torch::Tensor& ri, const torch::Tensor& bg) {
+  const int64_t s = sigma.numel();
+  TORCH_CHECK(sigma.scalar_type() == torch::kFloat32 && rgb.scalar_type() == torch::kFloat32 &&
+                  t0.scalar_type() == torch::kFloat32 && t1.scalar_type() == torch::kFloat32 &&
+                  bg.scalar_type() == torch::kFloat32 && ri.scalar_type() == torch::kInt64,
+              "float32 samples, int64 ray indices expected");
+  TORCH_CHECK(rgb.dim() == 2 && rgb.size(0) == s && t0.numel() == s && t1.numel() == s &&
+                  ri.numel() == s && bg.dim() == 2 && bg.size(1) == rgb.size(1),
+              "sample and background shapes do not match");
+  for (const auto* t : {&sigma, &rgb, &t0, &t1, &ri, &bg}) {
+    TORCH_CHECK(t->is_contiguous() && t->device().is_cpu(), "contiguous CPU tensors expected");
+  }
+}
+
+}  // namespace
+
+// Ray colours [R, C] = sum_i w_i rgb_i + (1 - sum_i w_i) bg of packed samples (sigma [S],
+// rgb [S, C], intervals t0, t1 [S], ray_indices [S] non-decreasing, bg [R, C]); w_i = T_i
+// (1 - exp(-tau_i)), T_i = exp(-sum of the ray's earlier tau, summed in double).
+torch::Tensor composite_forward(torch::Tensor sigma, torch::Tensor rgb, torch::Tensor t0,
+                                torch::Tensor t1, torch::Tensor ri, torch::Tensor bg) {
+  check_composite(sigma, rgb, t0, t1, ri, bg);
+  const int64_t s = sigma.numel(), r = bg.size(0), c = bg.size(1);
+  auto acc = torch::zeros({r, c}, bg.options());
+  std::vector<float> opacity(r, 0.0f);
+  const float *sp = sigma.data_ptr<float>(), *cp = rgb.data_ptr<float>();
+  const float *ap = t0.data_ptr<float>(), *bp = t1.data_ptr<float>(), *gp = bg.data_ptr<float>();
+  const int64_t* rp = ri.data_ptr<int64_t>();
+  float* out = acc.data_ptr<float>();
+  double before = 0.0;
+  for (int64_t i = 0; i < s; ++i) {
+    if (i == 0 || rp[i] != rp[i - 1]) before = 0.0;
+    TORCH_CHECK(rp[i] >= 0 && rp[i] < r, "ray index out of range");
+    bool live;
+    const float tau = thickness(sp[i], bp[i] - ap[i], live);
+    const float w = std::exp(-float(before)) * -std::expm1(-tau);
+    for (int64_t k = 0; k < c; ++k) out[rp[i] * c + k] += w * cp[i * c + k];
+    opacity[rp[i]] += w;
+    before += double(tau);
+  }
+  for (int64_t j = 0; j < r; ++j)
+    for (int64_t k = 0; k < c; ++k) out[j * c + k] += (1.0f - opacity[j]) * gp[j * c + k];
+  return acc;
+}
+
+// The backward of composite_forward for the colour gradient g [R, C]: {d sigma [S], d rgb [S, C],
+// d bg [R, C]}. With e_i = (rgb_i - bg) . g: d tau_i = T_{i+1} e_i - sum_{j > i} w_j e_j.
+std::vector<torch::Tensor> composite_backward(torch::Tensor g, torch::Tensor sigma,
+                                              torch::Tensor rgb, torch::Tensor t0,
+                                              torch::Tensor t1, torch::Tensor ri,
+                                              torch::Tensor bg) {
+  check_composite(sigma, rgb, t0, t1, ri, bg);
+  TORCH_CHECK(g.sizes() == bg.sizes() && g.is_contiguous() && g.scalar_type() == torch::kFloat32,
+              "the gradient must be float32 [R, C]");
+  const int64_t s = sigma.numel(), r = bg.size(0), c = bg.size(1);
+  auto d_sigma = torch::empty({s}, sigma.options());
+  auto d_rgb = torch::empty({s, c}, rgb.options());
+  auto d_bg = torch::empty({r, c}, bg.options());
+  const float *sp = sigma.data_ptr<float>(), *cp = rgb.data_ptr<float>(), *gp = g.data_ptr<float>();
+  const float *ap = t0.data_ptr<float>(), *bp = t1.data_ptr<float>(), *bgp = bg.data_ptr<float>();
+  const int64_t* rp = ri.data_ptr<int64_t>();
+  float *dsp = d_sigma.data_ptr<float>(), *dcp = d_rgb.data_ptr<float>();
+  std::vector<float> w(s), after(s), e(s);  // weight, transmittance behind, (rgb - bg) . g
+  std::vector<double> rest(r, 0.0);          // sum of w e over the ray
+  std::vector<float> opacity(r, 0.0f);
+  double before = 0.0;
+  for (int64_t i = 0; i < s; ++i) {
+    if (i == 0 || rp[i] != rp[i - 1]) before = 0.0;
+    bool live;
+    const float tau = thickness(sp[i], bp[i] - ap[i], live);
+    w[i] = std::exp(-float(before)) * -std::expm1(-tau);
+    before += double(tau);
+    after[i] = std::exp(-float(before));
+    float dot = 0.0f;
+    for (int64_t k = 0; k < c; ++k) {
+      dot += (cp[i * c + k] - bgp[rp[i] * c + k]) * gp[rp[i] * c + k];
+      dcp[i * c + k] = w[i] * gp[rp[i] * c + k];
+    }
+    e[i] = dot;
+    rest[rp[i]] += double(w[i]) * dot;
+    opacity[rp[i]] += w[i];
+  }
+  for (int64_t i = 0; i < s; ++i) {  // rest becomes the sum over the ray's later samples
+    rest[rp[i]] -= double(w[i]) * e[i];
+    bool live;
+    thickness(sp[i], bp[i] - ap[i], live);
+    const float d_tau = after[i] * e[i] - float(rest[rp[i]]);
+    dsp[i] = live ? d_tau * (bp[i] - ap[i]) : 0.0f;
+  }
+  float* dbp = d_bg.data_ptr<float>();
+  for (int64_t j = 0; j < r; ++j)
+    for (int64_t k = 0; k < c; ++k) dbp[j * c + k] = (1.0f - opacity[j]) * gp[j * c + k];
+  return {d_sigma, d_rgb, d_bg};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // the GIL is released while the kernel runs: another Python thread can work meanwhile
   m.def("march", &march, "occupancy-grid ray marching into packed samples",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("composite", &composite_forward, "ray colours of packed samples",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("composite_backward", &composite_backward, "gradients of composite",
         py::call_guard<py::gil_scoped_release>());
 }
