@@ -104,7 +104,8 @@ def composite(
     of ~15 tensor ops each way; the same values and gradients up to float32 summation order.
     """
     if kernel("march", backend) is None or t_starts.device.type != "cpu":
-        return render_packed(t_starts, t_ends, ray_indices, n_rays, color_sigma_fn, background).color
+        out = render_packed(t_starts, t_ends, ray_indices, n_rays, color_sigma_fn, background)
+        return out.color
     colors, sigmas = color_sigma_fn(t_starts, t_ends, ray_indices)
     bg = background.expand(n_rays, colors.shape[1]).float().contiguous()
     return _Composite.apply(sigmas.float().contiguous(), colors.float().contiguous(),
