@@ -89,7 +89,7 @@ class Field(nn.Module):
         a = torch.as_tensor(np.asarray(aabb), dtype=torch.float32)
         self.register_buffer("aabb_min", a[0].clone(), persistent=False)
         self.register_buffer("aabb_size", (a[1] - a[0]).clone(), persistent=False)
-        self._fused_mlp: bool | None = None  # decided on first use (builds the kernel)
+        self._fused_mlp: bool | None = None  # decided by prepare_kernels (builds them)
 
     def _run(self, mlp: nn.Sequential, x: Tensor, outputs: int | None = None) -> Tensor:
         """Apply ``mlp`` to ``x`` [N, n_in] float32 -> [N, n_out] float32 (only the first
@@ -218,6 +218,18 @@ class Field(nn.Module):
         sigma, geo = self.geometry(points)
         return self.color(geo, dirs), sigma
 
+    def prepare_kernels(self) -> bool:
+        """Build (once, cached on disk) or load the C++ kernels this field uses, so that the
+        first training step does not pay for a build inside a time budget; whether the fused
+        MLPs (:meth:`color_sigma`) can run this field."""
+        if self._fused_mlp is None:
+            self.encoding.prepare()
+            plain = self.dtype == torch.float32 and self.product_dtype == torch.float32
+            self._fused_mlp = plain and usable(
+                self.density_mlp, self.color_mlp, self.encoding.backend
+            )
+        return self._fused_mlp
+
     def color_sigma(
         self, points: Tensor, dir_enc: Tensor, ray_indices: Tensor, encoded: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
@@ -234,12 +246,7 @@ class Field(nn.Module):
         storage and products, the presets' layer shapes), else the torch layers; the same
         values and gradients up to float32 summation order.
         """
-        if self._fused_mlp is None:
-            plain = self.dtype == torch.float32 and self.product_dtype == torch.float32
-            self._fused_mlp = plain and usable(
-                self.density_mlp, self.color_mlp, self.encoding.backend
-            )
-        if self._fused_mlp:
+        if self.prepare_kernels():
             unit = (points - self.aabb_min) / self.aabb_size
             enc = self.encoding(unit, cached=encoded)
             logits = field_logits(enc, dir_enc, ray_indices, self.density_mlp, self.color_mlp)

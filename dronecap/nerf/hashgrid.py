@@ -169,6 +169,12 @@ class HashGrid(torch.nn.Module):
             return _compiled_reference()
         return hash_encode_reference
 
+    def prepare(self) -> None:
+        """Resolve the encoding function now (building the C++ kernel if needed) instead of at
+        the first forward."""
+        if self._encode is None:
+            self._encode = self._resolve()
+
     def forward(self, x: Tensor, cached: Tensor | None = None) -> Tensor:
         """Encode ``x`` [N, 3] (unit cube, clamped) into [N, levels * features] float32.
 
@@ -176,8 +182,7 @@ class HashGrid(torch.nn.Module):
         pass after :mod:`.compaction`); with the C++ kernel it is returned as the result and
         only the backward runs, other backends compute the encoding again.
         """
-        if self._encode is None:
-            self._encode = self._resolve()
+        self.prepare()
         table = (
             self.table if self.dtype == torch.float32 else _RoundTo.apply(self.table, self.dtype)
         )

@@ -109,6 +109,7 @@ class Trainer:
         self.images = None
         self.camera: Camera | None = None
         self.march = march_function(backend)
+        self.field.prepare_kernels()  # kernels built before any step is timed
 
     def set_data(self, train: Dataset) -> None:
         """Use the training frames of ``train`` (same channels as the model) from now on."""
