@@ -127,7 +127,8 @@ def test_density_alone_is_the_geometry_pass_density_in_every_product_dtype():
     for f in (*_twins(), *_twins(precision="fp16")[:1]):
         sig, geo = f.geometry(pts)
         assert geo.shape[1] > 1
-        assert torch.allclose(f.density(pts), sig, rtol=1e-6, atol=0)
+        # a one-column product may round differently from the 16-column one by a few ulps
+        assert torch.allclose(f.density(pts), sig, rtol=1e-5, atol=0)
         assert torch.equal(f.density_from_encoding(f.encode(pts)), f.density(pts))
 
 
