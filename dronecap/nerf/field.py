@@ -123,9 +123,14 @@ class Field(nn.Module):
                 h = F.linear(h, w.to(self.product_dtype))
         return h[:n].float()
 
+    def unit(self, points: Tensor) -> Tensor:
+        """``points`` [N, 3] in scene units mapped to the unit cube of the AABB (what the hash
+        encoding takes; outside the box lies outside [0, 1])."""
+        return (points - self.aabb_min) / self.aabb_size
+
     def encode(self, points: Tensor) -> Tensor:
         """Hash encoding [N, levels * features] float32 of ``points`` [N, 3] (scene units)."""
-        return self.encoding((points - self.aabb_min) / self.aabb_size)
+        return self.encoding(self.unit(points))
 
     def geometry(self, points: Tensor, encoded: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Density and geometry features.
@@ -138,7 +143,7 @@ class Field(nn.Module):
         Returns:
             sigma [N] density per scene unit (>= 0, finite), geo [N, geo_features].
         """
-        unit = (points - self.aabb_min) / self.aabb_size
+        unit = self.unit(points)
         return self.geometry_from_encoding(self.encoding(unit, cached=encoded))
 
     def geometry_from_encoding(self, encoded: Tensor) -> tuple[Tensor, Tensor]:
@@ -171,7 +176,7 @@ class Field(nn.Module):
         encoding and MLP run fused (:meth:`HashGrid.fused_density`; the same values up to
         float32 summation order), else one after the other.
         """
-        unit = (points - self.aabb_min) / self.aabb_size
+        unit = self.unit(points)
         layers = self._density_rows()
         if layers is not None:
             fused = self.encoding.fused_density(unit, *layers, keep_encoded)
@@ -192,7 +197,7 @@ class Field(nn.Module):
         layers = self._density_rows()
         if layers is None:
             return None
-        unit = (points - self.aabb_min) / self.aabb_size
+        unit = self.unit(points)
         return self.encoding.fused_visible(
             unit, samples, *layers, MAX_LOG_DENSITY, min_transmittance
         )
@@ -247,7 +252,7 @@ class Field(nn.Module):
         values and gradients up to float32 summation order.
         """
         if self.prepare_kernels():
-            unit = (points - self.aabb_min) / self.aabb_size
+            unit = self.unit(points)
             enc = self.encoding(unit, cached=encoded)
             logits = field_logits(enc, dir_enc, ray_indices, self.density_mlp, self.color_mlp)
             return torch.sigmoid(logits[:, 1:]), trunc_exp(logits[:, 0])

@@ -14,6 +14,10 @@
 // (AVX2+FMA) or 16 (AVX-512) points per instruction; other F use the scalar loops. Two alternatives, kept for the
 // benchmark that chose the default, split by points instead and resolve races with atomics or
 // with per-thread partial tables.
+//
+// Fused queries without autograd (`density`, `visible`): the encoding of a block of points
+// goes straight through the density MLP's hidden layer and density row while it is in cache,
+// and `visible` adds compaction's per-ray transmittance cut (docs/hashgrid.md).
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
@@ -385,13 +389,20 @@ void backward_range(const float* x, const float* grad_out, float* grad, int64_t 
   }
 }
 
-void check_inputs(const torch::Tensor& x, const torch::Tensor& table) {
+// The levels of a forward call, after checking x [N, 3] and table [rows, F] against them.
+std::vector<Level> checked_levels(const torch::Tensor& x, const torch::Tensor& table,
+                                  const std::vector<int64_t>& resolutions,
+                                  const std::vector<int64_t>& offsets, int64_t log2_hashmap) {
   TORCH_CHECK(x.device().is_cpu() && table.device().is_cpu(), "CPU tensors expected");
   TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32 &&
                   x.is_contiguous(),
               "x must be a contiguous float32 [N, 3] tensor");
   TORCH_CHECK(table.dim() == 2 && table.scalar_type() == torch::kFloat32 && table.is_contiguous(),
               "table must be a contiguous float32 [rows, F] tensor");
+  auto levels = make_levels(resolutions, offsets, log2_hashmap);
+  TORCH_CHECK(table.size(0) == offsets.back(), "table has ", table.size(0), " rows, expected ",
+              offsets.back());
+  return levels;
 }
 
 #define DISPATCH_F(nf, FN, ...)     \
@@ -407,10 +418,7 @@ void check_inputs(const torch::Tensor& x, const torch::Tensor& table) {
 
 torch::Tensor hash_forward(torch::Tensor x, torch::Tensor table, std::vector<int64_t> resolutions,
                            std::vector<int64_t> offsets, int64_t log2_hashmap) {
-  check_inputs(x, table);
-  const auto levels = make_levels(resolutions, offsets, log2_hashmap);
-  TORCH_CHECK(table.size(0) == offsets.back(), "table has ", table.size(0), " rows, expected ",
-              offsets.back());
+  const auto levels = checked_levels(x, table, resolutions, offsets, log2_hashmap);
   const int64_t n = x.size(0), nf = table.size(1), nl = int64_t(levels.size());
   const int64_t out_dim = nl * nf;
   auto out = torch::empty({n, out_dim}, x.options());
@@ -585,10 +593,7 @@ void encode_density(const torch::Tensor& x, const torch::Tensor& table,
                     const std::vector<int64_t>& resolutions, const std::vector<int64_t>& offsets,
                     int64_t log2_hashmap, const torch::Tensor& w1, const torch::Tensor& w2,
                     float* rp, float* ep) {
-  check_inputs(x, table);
-  const auto levels = make_levels(resolutions, offsets, log2_hashmap);
-  TORCH_CHECK(table.size(0) == offsets.back(), "table has ", table.size(0), " rows, expected ",
-              offsets.back());
+  const auto levels = checked_levels(x, table, resolutions, offsets, log2_hashmap);
   const int64_t n = x.size(0), nf = table.size(1), nl = int64_t(levels.size());
   const int64_t out_dim = nl * nf;
   TORCH_CHECK(w1.dim() == 2 && w1.size(1) == out_dim && w1.scalar_type() == torch::kFloat32,
