@@ -38,7 +38,7 @@ FALLBACK_NOTICE = (
     "dronecap: no working C++ compiler ({err}); using the PyTorch reference kernels, "
     "~8x slower (install g++ to get the fast path)"
 )
-BUILD_NOTICE = "dronecap: building C++ kernels (once, ~40 s)"
+BUILD_NOTICE = "dronecap: building C++ kernels (once, ~80 s)"
 WAIT_NOTICE = "dronecap: waiting for another dronecap process building the C++ kernels"
 # DRONECAP_NO_SIMD=1 builds the kernels without their AVX2/AVX-512 paths (a separate cached
 # build): the scalar baseline benchmarks/train_speed.py compares the SIMD paths with.
