@@ -17,7 +17,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from dronecap.cpu import native_bf16
+from dronecap.cpu import fast_bf16
 
 
 @dataclass
@@ -75,14 +75,14 @@ class TrainConfig:
     lr_final_ratio: float = 0.03
     # --- numerics -------------------------------------------------------------------------
     precision: str = "fp32"  # "fp32", "fp16" or "bf16" storage of hash table and activations
-    # MLP matrix products on the host: "fp32", "bf16" (fp32 accumulation; weights, gradients
-    # and Adam stay fp32) or "auto": bf16 where the CPU multiplies it natively (AVX512-BF16 or
-    # AMX), else fp32. Resolved once. Default fp32: on an AMX Xeon bf16 was 20-27 % faster per
-    # step in session 8, but with today's step (8k trained samples, the compaction pre-pass)
-    # it is slower (lego, 1 thread: 23.4 vs 22.3 ms; 2 threads 18.2 vs 15.9 ms); 10-s lego
-    # runs 25.63 / 25.66 dB in fp32 against 25.46 / 25.50 in bf16 (docs/training.md "fp32
-    # products and fewer early grid updates").
-    mlp_dtype: str = "fp32"
+    # MLP matrix products on the host: "fp32", "bf16" (inputs rounded to bf16, fp32 sums;
+    # weights, gradients and Adam stay fp32) or "auto": bf16 on a CPU with AMX-BF16 tiles,
+    # where the fused training kernel (nerf/mlp_kernel.py) multiplies on them, else fp32.
+    # Resolved once. Default auto since session 24: the AMX products make the lego step 1.24x
+    # faster at 1 thread, and 10-s runs (1 thread, paired seeds) gain +0.45 dB on lego (3
+    # seeds), +0.27 on the corridor (6 seeds), +0.9 on real Himax test_23 (2 seeds)
+    # (docs/training.md "bf16 products on AMX tiles").
+    mlp_dtype: str = "auto"
     # --- the camera's photometric model, learned while training (nerf/photometric.py) -------
     # Per-frame exposure gains and one vignetting falloff multiply the rendered colour before
     # the loss; renders and evaluation show the scene without them. "on", "off", or "auto": on
@@ -387,10 +387,10 @@ def problems(cfg: TrainConfig) -> list[str]:
 
 def mlp_dtype(cfg: TrainConfig) -> str:
     """The MLP product dtype ``cfg`` trains with: its ``mlp_dtype``, with "auto" decided here
-    ("bf16" on a CPU with native bf16 products unless ``precision`` is fp16, else "fp32")."""
+    ("bf16" on a CPU with AMX-BF16 tiles unless ``precision`` is fp16, else "fp32")."""
     if cfg.mlp_dtype != "auto":
         return cfg.mlp_dtype
-    return "bf16" if cfg.precision != "fp16" and native_bf16() else "fp32"
+    return "bf16" if cfg.precision != "fp16" and fast_bf16() else "fp32"
 
 
 def config_from_overrides(name: str, sets: list[str], fields: dict[str, Any]) -> TrainConfig:

@@ -14,7 +14,7 @@ from torch import Tensor, nn
 from .config import TrainConfig, mlp_dtype
 from .far_field import make_far_field
 from .hashgrid import HashGrid
-from .mlp_kernel import field_logits, usable
+from .mlp_kernel import amx, field_logits, usable
 from .sh import sh_dim, sh_encode
 
 DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
@@ -206,7 +206,7 @@ class Field(nn.Module):
         """(hidden-layer weight, the density's output row) of a density MLP of one hidden
         layer multiplying in float32, which the fused C++ queries take; else None."""
         layers = [m for m in self.density_mlp if isinstance(m, nn.Linear)]
-        if len(layers) != 2 or self.product_dtype != torch.float32:
+        if len(layers) != 2 or self.product_dtype not in (torch.float32, torch.bfloat16):
             return None
         return layers[0].weight, layers[1].weight[0]
 
@@ -229,11 +229,14 @@ class Field(nn.Module):
         MLPs (:meth:`color_sigma`) can run this field."""
         if self._fused_mlp is None:
             self.encoding.prepare()
-            plain = self.dtype == torch.float32 and self.product_dtype == torch.float32
-            self._fused_mlp = plain and usable(
+            self._fused_mlp = self.dtype == torch.float32 and usable(
                 self.density_mlp, self.color_mlp, self.encoding.backend
             )
-        return self._fused_mlp
+        return self._fused_mlp and (self.product_dtype == torch.float32 or self._amx_bf16())
+
+    def _amx_bf16(self) -> bool:
+        """Whether the MLPs multiply in bf16 and the fused kernel can do so on AMX tiles."""
+        return self.product_dtype == torch.bfloat16 and amx()
 
     def color_sigma(
         self, points: Tensor, dir_enc: Tensor, ray_indices: Tensor, encoded: Tensor | None = None
@@ -254,7 +257,9 @@ class Field(nn.Module):
         if self.prepare_kernels():
             unit = self.unit(points)
             enc = self.encoding(unit, cached=encoded)
-            logits = field_logits(enc, dir_enc, ray_indices, self.density_mlp, self.color_mlp)
+            logits = field_logits(
+                enc, dir_enc, ray_indices, self.density_mlp, self.color_mlp, self._amx_bf16()
+            )
             return torch.sigmoid(logits[:, 1:]), trunc_exp(logits[:, 0])
         sigma, geo = self.geometry(points, encoded)
         return self.color_from_encoding(geo, dir_enc[ray_indices]), sigma

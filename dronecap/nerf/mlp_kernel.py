@@ -14,6 +14,8 @@ configurations use the torch layers (:func:`usable`).
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor, nn
 
@@ -49,6 +51,7 @@ def field_logits(
     ray_indices: Tensor,
     density_mlp: nn.Sequential,
     color_mlp: nn.Sequential,
+    bf16: bool = False,
 ) -> Tensor:
     """Density and colour logits of samples through both MLPs, with autograd.
 
@@ -57,30 +60,41 @@ def field_logits(
         dir_enc: [R, S] SH encoding of each ray's direction (no gradient).
         ray_indices: [N] int64, each sample's ray.
         density_mlp, color_mlp: as :func:`usable` accepts; their weights get gradients.
+        bf16: multiply bf16-rounded inputs on the AMX tiles (float32 sums, outputs and weight
+            gradients); only where :func:`amx` is true.
 
     Returns:
         [N, 1 + C] float32: column 0 the density logit (the density MLP's first output),
         columns 1.. the colour logits.
     """
     weights = [m.weight for m in (*density_mlp, *color_mlp) if isinstance(m, nn.Linear)]
-    return _FusedMLP.apply(encoded, dir_enc.detach(), ray_indices, *weights)
+    return _FusedMLP.apply(encoded, dir_enc.detach(), ray_indices, bf16, *weights)
+
+
+@functools.cache
+def amx() -> bool:
+    """Whether the fused kernel can multiply in bf16 on this CPU's AMX tiles (built for a CPU
+    with AMX-BF16, and the tile state granted to this process)."""
+    k = kernel("mlp")
+    return k is not None and bool(k.amx())
 
 
 class _FusedMLP(torch.autograd.Function):
     """Autograd wrapper of the kernel: gradients for the encodings and the five weights."""
 
     @staticmethod
-    def forward(ctx, encoded, dir_enc, ray_indices, *weights):  # noqa: D102
+    def forward(ctx, encoded, dir_enc, ray_indices, bf16, *weights):  # noqa: D102
         args = (encoded.float().contiguous(), dir_enc.float().contiguous(), ray_indices.long())
         ctx.save_for_backward(*args, *weights)
-        return backend_load("mlp").forward(*args, *(w.float() for w in weights))
+        ctx.bf16 = bf16
+        return backend_load("mlp").forward(*args, *(w.float() for w in weights), bf16)
 
     @staticmethod
     def backward(ctx, grad):  # noqa: D102
         encoded, dir_enc, ray_indices, *weights = ctx.saved_tensors
         ws = [w.float() for w in weights]
         grads = backend_load("mlp").backward(
-            grad.float().contiguous(), encoded, dir_enc, ray_indices, *ws
+            grad.float().contiguous(), encoded, dir_enc, ray_indices, *ws, ctx.bf16
         )
         grad_e = grads[0] if ctx.needs_input_grad[0] else None
-        return grad_e, None, None, *grads[1:]
+        return grad_e, None, None, None, *grads[1:]

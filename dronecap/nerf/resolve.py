@@ -259,10 +259,10 @@ def _why_mlp_dtype(cfg: TrainConfig, products: str) -> str:
     if cfg.mlp_dtype != "auto":
         return "set by the configuration"
     if products == "bf16":
-        return "this CPU multiplies bf16 natively: faster steps at equal PSNR"
+        return "this CPU has AMX-BF16 tiles: faster steps, more PSNR in a time budget"
     if cfg.precision == "fp16":
         return "fp16 storage (precision) is emulated with fp32 products"
-    return "this CPU has no native bf16 products (emulated bf16 is slower than fp32)"
+    return "this CPU has no AMX-BF16 tiles (bf16 products would be slower than fp32)"
 
 
 def _size(

@@ -44,17 +44,17 @@ def test_requested_threads_win_and_are_set(monkeypatch):
 
 
 @pytest.mark.parametrize(
-    ("flags", "native"),
-    [("fpu avx2 avx512f avx512_bf16", True), ("fpu amx_bf16 amx_tile", True),
+    ("flags", "fast"),
+    [("fpu avx2 avx512f avx512_bf16", False), ("fpu amx_bf16 amx_tile", True),
      ("fpu avx2 avx512f", False), ("", False)],
 )  # fmt: skip
-def test_native_bf16_reads_the_cpu_flags(monkeypatch, tmp_path, flags, native):
+def test_fast_bf16_needs_the_amx_tiles(monkeypatch, tmp_path, flags, fast):
     info = tmp_path / "cpuinfo"
     info.write_text(f"processor\t: 0\nflags\t\t: {flags}\n")
     monkeypatch.setattr(cpu, "PROC_CPUINFO", info)
-    assert cpu.native_bf16() is native
+    assert cpu.fast_bf16() is fast
 
 
-def test_without_cpuinfo_no_native_bf16(monkeypatch, tmp_path):
+def test_without_cpuinfo_no_fast_bf16(monkeypatch, tmp_path):
     monkeypatch.setattr(cpu, "PROC_CPUINFO", tmp_path / "missing")
-    assert cpu.native_bf16() is False
+    assert cpu.fast_bf16() is False

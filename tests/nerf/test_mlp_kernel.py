@@ -7,7 +7,7 @@ import torch
 from dronecap.nerf.backend import kernel
 from dronecap.nerf.config import preset
 from dronecap.nerf.field import Field
-from dronecap.nerf.mlp_kernel import field_logits, usable
+from dronecap.nerf.mlp_kernel import amx, field_logits, usable
 
 AABB = np.array([[-1.0, -1, -1], [1, 1, 1]])
 needs_kernel = pytest.mark.skipif(
@@ -64,6 +64,60 @@ def test_fused_logits_and_gradients_match_the_torch_layers(channels, changes):
             assert torch.allclose(b, a, rtol=1e-4, atol=1e-4 * float(a.abs().max()))
 
 
+def _bf16(x: torch.Tensor) -> torch.Tensor:
+    return x.to(torch.bfloat16).float()
+
+
+class _RoundedLinear(torch.autograd.Function):
+    """A bias-free layer whose every product rounds its two inputs to bf16 and sums in float32,
+    forward and backward: what the kernel's AMX products compute."""
+
+    @staticmethod
+    def forward(ctx, x, w):  # noqa: D102
+        ctx.save_for_backward(x, w)
+        return _bf16(x) @ _bf16(w).T
+
+    @staticmethod
+    def backward(ctx, g):  # noqa: D102
+        x, w = ctx.saved_tensors
+        return _bf16(g) @ _bf16(w), _bf16(g).T @ _bf16(x)
+
+
+def _rounded_logits(f: Field, enc, dir_enc, ri):
+    def run(mlp, x):
+        for m in mlp:
+            x = torch.relu(x) if isinstance(m, torch.nn.ReLU) else _RoundedLinear.apply(x, m.weight)
+        return x
+
+    h = run(f.density_mlp, enc)
+    return torch.cat([h[:, :1], run(f.color_mlp, torch.cat([h, dir_enc[ri]], -1))], 1)
+
+
+@pytest.mark.skipif(not amx(), reason="bf16 products need AMX-BF16 tiles (Intel Xeon 4th gen+)")
+@pytest.mark.parametrize(
+    "channels, changes", [(3, {}), (1, {}), (3, {"hidden": 32, "geo_features": 15})]
+)
+def test_bf16_products_are_the_rounded_products_summed_in_float32(channels, changes):
+    f = _field(channels, **changes)
+    weights = [m.weight for m in (*f.density_mlp, *f.color_mlp) if isinstance(m, torch.nn.Linear)]
+    for n in (1, 33, 1000):
+        enc, dir_enc, ri = _samples(f, n, rays=max(n // 7, 1))
+        e1, e2, e3 = (enc.clone().requires_grad_() for _ in range(3))
+        want = _rounded_logits(f, e1, dir_enc, ri)
+        got = field_logits(e2, dir_enc, ri, f.density_mlp, f.color_mlp, bf16=True)
+        exact = field_logits(e3, dir_enc, ri, f.density_mlp, f.color_mlp, bf16=False)
+        # float32 sums in another order may round an activation to the next bf16 (2^-8 apart)
+        top = float(want.detach().abs().max())
+        assert torch.allclose(got, want, rtol=1e-3, atol=2e-3 * top)
+        assert not torch.allclose(got, exact, rtol=1e-5, atol=1e-5)  # the products did round
+        assert torch.allclose(got, exact, rtol=0.05, atol=0.05 * top)
+        g = torch.randn(want.shape, generator=torch.Generator().manual_seed(n))
+        grads_want = torch.autograd.grad(want, [e1, *weights], g)
+        grads_got = torch.autograd.grad(got, [e2, *weights], g)
+        for a, b in zip(grads_want, grads_got, strict=True):
+            assert torch.allclose(b, a, rtol=1e-3, atol=5e-3 * float(a.abs().max()))
+
+
 @needs_kernel
 def test_field_colour_and_density_of_samples_follow_the_torch_path():
     fused, plain = _field(), _field()
@@ -102,8 +156,8 @@ def test_other_shapes_and_precisions_use_the_torch_layers():
     assert not usable(_field().density_mlp, _field(color_layers=1).color_mlp, "auto")
     assert not usable(_field(hidden=40).density_mlp, _field(hidden=40).color_mlp, "auto")
     assert not usable(_field().density_mlp, _field().color_mlp, "torch")
-    for changes in ({"precision": "fp16"}, {"mlp_dtype": "bf16"}):
+    for changes, fused in (({"precision": "fp16"}, False), ({"mlp_dtype": "bf16"}, amx())):
         f = _field(**changes)
         _, dir_enc, ri = _samples(f, 10, rays=2)
         f.color_sigma(torch.rand(10, 3), dir_enc, ri)
-        assert f._fused_mlp is False
+        assert f.prepare_kernels() is fused

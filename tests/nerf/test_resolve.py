@@ -40,7 +40,7 @@ def test_mlp_dtype_is_decided_once_for_this_cpu(
 ):
     from dronecap.nerf import config
 
-    monkeypatch.setattr(config, "native_bf16", lambda: native)
+    monkeypatch.setattr(config, "fast_bf16", lambda: native)
     r = resolve(preset("test").replace(mlp_dtype=asked, precision=precision), cube_rgb)
     assert r.config.mlp_dtype == products
     assert ("configuration" in r.reasons["mlp_dtype"]) == (asked != "auto")
