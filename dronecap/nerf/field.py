@@ -172,8 +172,8 @@ class Field(nn.Module):
         """Density [N] per scene unit at ``points`` [N, 3] and, with ``keep_encoded``, their
         hash encoding [N, levels * features] (:meth:`encode`), without autograd.
 
-        With fp32 storage and products, a density MLP of one hidden layer and the C++ kernel,
-        encoding and MLP run fused (:meth:`HashGrid.fused_density`; the same values up to
+        With fp32 storage, a density MLP of one hidden layer and the C++ kernel, encoding and
+        MLP run fused in float32 products (:meth:`HashGrid.fused_density`; the same values up to
         float32 summation order), else one after the other.
         """
         unit = self.unit(points)
@@ -204,9 +204,11 @@ class Field(nn.Module):
 
     def _density_rows(self) -> tuple[Tensor, Tensor] | None:
         """(hidden-layer weight, the density's output row) of a density MLP of one hidden
-        layer multiplying in float32, which the fused C++ queries take; else None."""
+        layer, which the fused C++ queries take; else None. The fused queries multiply in
+        float32 under bf16 products too: they only rank grid cells and samples (occupancy
+        updates, compaction), and bf16 would make them no faster."""
         layers = [m for m in self.density_mlp if isinstance(m, nn.Linear)]
-        if len(layers) != 2 or self.product_dtype not in (torch.float32, torch.bfloat16):
+        if len(layers) != 2:
             return None
         return layers[0].weight, layers[1].weight[0]
 

@@ -137,7 +137,8 @@ def test_fused_density_query_matches_encoding_then_mlp():
     # (4-point AVX path at width 64, the scalar loop at other widths and for the tail rows)
     g = torch.Generator().manual_seed(3)
     for hidden, backend in ((64, "auto"), (32, "auto"), (48, "auto"), (64, "torch")):
-        cfg = preset("scene-sized").replace(n_max=223, hidden=hidden)
+        # fp32 products: the torch layers then multiply as the fused query does
+        cfg = preset("scene-sized").replace(n_max=223, hidden=hidden, mlp_dtype="fp32")
         f = Field(cfg, 3, AABB, backend=backend)
         with torch.no_grad():
             f.encoding.table.uniform_(-1, 1, generator=g)

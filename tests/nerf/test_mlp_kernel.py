@@ -17,6 +17,7 @@ needs_kernel = pytest.mark.skipif(
 
 def _field(channels: int = 3, **changes) -> Field:
     torch.manual_seed(0)
+    changes = {"mlp_dtype": "fp32", **changes}  # exact products unless a test asks for bf16
     f = Field(preset("scene-sized").replace(n_max=64, **changes), channels, AABB)
     with torch.no_grad():
         for p in f.parameters():
