@@ -37,6 +37,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <memory>
 #include <vector>
 
 namespace {
@@ -584,49 +585,58 @@ int64_t density_rows64(const float* e, int64_t n, int64_t in_dim, const float* w
 
 }  // namespace
 
-// The density MLP's first output (before its activation) at points x, fused with their hash
+// The density MLP's first output (before its activation) at points, fused with their hash
 // encoding: a block of points is encoded into a buffer that stays in cache and goes through the
 // MLP (one hidden layer of ReLUs, bias-free) before the next block, so the [N, hidden]
 // activations never reach memory. w1 [hidden, L*F] and w2 [hidden] (the last layer's first row).
-// Writes raw [N] and, when `ep` is not null, the encodings [N, L*F].
-void encode_density(const torch::Tensor& x, const torch::Tensor& table,
-                    const std::vector<int64_t>& resolutions, const std::vector<int64_t>& offsets,
-                    int64_t log2_hashmap, const torch::Tensor& w1, const torch::Tensor& w2,
-                    float* rp, float* ep) {
-  const auto levels = checked_levels(x, table, resolutions, offsets, log2_hashmap);
-  const int64_t n = x.size(0), nf = table.size(1), nl = int64_t(levels.size());
-  const int64_t out_dim = nl * nf;
-  TORCH_CHECK(w1.dim() == 2 && w1.size(1) == out_dim && w1.scalar_type() == torch::kFloat32,
-              "w1 must be float32 [hidden, L*F]");
-  const int64_t hidden = w1.size(0);
-  TORCH_CHECK(hidden >= 1 && hidden <= 1024, "hidden width must be in [1, 1024]");
-  TORCH_CHECK(w2.numel() == hidden && w2.scalar_type() == torch::kFloat32,
-              "w2 must be float32 [hidden]");
-  const auto w1t = w1.t().contiguous();
-  const auto w2c = w2.reshape({hidden}).contiguous();
-  const float* xp = x.data_ptr<float>();
-  const float* tp = table.data_ptr<float>();
-  const float* w1p = w1t.data_ptr<float>();
-  const float* w2p = w2c.data_ptr<float>();
-  const int64_t blocks = (n + kFuseBlock - 1) / kFuseBlock;
-#pragma omp parallel num_threads(at::get_num_threads())
-  {
-    std::vector<float> scratch(ep ? 0 : kFuseBlock * out_dim);
+// Checked and laid out once (the pre-pass queries in rounds), then run on any rows of points.
+struct DensityQuery {
+  std::vector<Level> levels;
+  int64_t nf, out_dim, hidden;
+  torch::Tensor table, w1t, w2c;  // kept alive for the pointers below
+  const float *tp, *w1p, *w2p;
+
+  DensityQuery(const torch::Tensor& x, const torch::Tensor& table_,
+               const std::vector<int64_t>& resolutions, const std::vector<int64_t>& offsets,
+               int64_t log2_hashmap, const torch::Tensor& w1, const torch::Tensor& w2)
+      : levels(checked_levels(x, table_, resolutions, offsets, log2_hashmap)),
+        nf(table_.size(1)),
+        out_dim(int64_t(levels.size()) * nf),
+        hidden(w1.size(0)),
+        table(table_) {
+    TORCH_CHECK(w1.dim() == 2 && w1.size(1) == out_dim && w1.scalar_type() == torch::kFloat32,
+                "w1 must be float32 [hidden, L*F]");
+    TORCH_CHECK(hidden >= 1 && hidden <= 1024, "hidden width must be in [1, 1024]");
+    TORCH_CHECK(w2.numel() == hidden && w2.scalar_type() == torch::kFloat32,
+                "w2 must be float32 [hidden]");
+    w1t = w1.t().contiguous();
+    w2c = w2.reshape({hidden}).contiguous();
+    tp = table.data_ptr<float>(), w1p = w1t.data_ptr<float>(), w2p = w2c.data_ptr<float>();
+  }
+
+  // Raw densities rp [n] of the points xp [n, 3] and, when `ep` is not null, their encodings
+  // ep [n, L*F].
+  void operator()(const float* xp, int64_t n, float* rp, float* ep) const {
+    const int64_t blocks = (n + kFuseBlock - 1) / kFuseBlock, nl = int64_t(levels.size());
+#pragma omp parallel num_threads(std::min<int64_t>(at::get_num_threads(), blocks))
+    {
+      std::vector<float> scratch(ep ? 0 : kFuseBlock * out_dim);
 #pragma omp for schedule(static)
-    for (int64_t b = 0; b < blocks; ++b) {
-      const int64_t n0 = b * kFuseBlock, m = std::min(n, n0 + kFuseBlock) - n0;
-      float* e = ep ? ep + n0 * out_dim : scratch.data();
-      for (int64_t l = 0; l < nl; ++l) {
-        DISPATCH_F(nf, forward_range, xp + 3 * n0, tp, e, 0, m, levels[l], l, out_dim, nf);
-      }
-      int64_t done = 0;
+      for (int64_t b = 0; b < blocks; ++b) {
+        const int64_t n0 = b * kFuseBlock, m = std::min(n, n0 + kFuseBlock) - n0;
+        float* e = ep ? ep + n0 * out_dim : scratch.data();
+        for (int64_t l = 0; l < nl; ++l) {
+          DISPATCH_F(nf, forward_range, xp + 3 * n0, tp, e, 0, m, levels[l], l, out_dim, nf);
+        }
+        int64_t done = 0;
 #if defined(HG_AVX512) || defined(HG_AVX2)
-      if (hidden == 64) done = density_rows64(e, m, out_dim, w1p, w2p, rp + n0);
+        if (hidden == 64) done = density_rows64(e, m, out_dim, w1p, w2p, rp + n0);
 #endif
-      density_rows(e + done * out_dim, m - done, out_dim, w1p, w2p, hidden, rp + n0 + done);
+        density_rows(e + done * out_dim, m - done, out_dim, w1p, w2p, hidden, rp + n0 + done);
+      }
     }
   }
-}
+};
 
 // Returns {raw [N], encoded [N, L*F] (empty unless keep_encoded)}.
 std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
@@ -636,8 +646,9 @@ std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
   const int64_t n = x.size(0), out_dim = int64_t(resolutions.size()) * table.size(1);
   auto raw = torch::empty({n}, x.options());
   auto encoded = torch::empty({keep_encoded ? n : 0, out_dim}, x.options());
-  encode_density(x, table, resolutions, offsets, log2_hashmap, w1, w2, raw.data_ptr<float>(),
-                 keep_encoded ? encoded.data_ptr<float>() : nullptr);
+  const DensityQuery query(x, table, resolutions, offsets, log2_hashmap, w1, w2);
+  query(x.data_ptr<float>(), n, raw.data_ptr<float>(),
+        keep_encoded ? encoded.data_ptr<float>() : nullptr);
   return {raw, encoded};
 }
 
@@ -648,6 +659,14 @@ std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
 // Density = exp(raw clamped to +-max_log_density); thickness = density * length, NaN -> 0,
 // clamped to [0, 1e4] (the reference's rules). Returns {kept sample indices int64 [K], their
 // encodings [K, L*F]}.
+//
+// The rays march front to back in rounds: each round queries the next samples of every ray
+// still above the threshold (kVisibleRound in the first round, twice as many in each next one:
+// a ray that is still clear is likely to stay clear), and a ray stops at its first sample below
+// it. Samples behind a ray's cut (about 60 % of a step's marched samples on lego) are then mostly
+// never encoded; what is kept is exactly what querying every sample would keep.
+constexpr int64_t kVisibleRound = 4;
+
 std::vector<torch::Tensor> visible_forward(torch::Tensor x, torch::Tensor t_starts,
                                            torch::Tensor t_ends, torch::Tensor ray_indices,
                                            torch::Tensor table, std::vector<int64_t> resolutions,
@@ -657,36 +676,76 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor x, torch::Tensor t_star
   const int64_t n = x.size(0), out_dim = int64_t(resolutions.size()) * table.size(1);
   TORCH_CHECK(t_starts.scalar_type() == torch::kFloat32 && t_ends.scalar_type() == torch::kFloat32 &&
                   ray_indices.scalar_type() == torch::kInt64 && t_starts.numel() == n &&
-                  t_ends.numel() == n && ray_indices.numel() == n,
-              "t_starts, t_ends float32 [S] and ray_indices int64 [S] expected");
-  auto raw = torch::empty({n}, x.options());
-  auto encoded = torch::empty({n, out_dim}, x.options());
-  float* rp = raw.data_ptr<float>();
-  const float* ep = encoded.data_ptr<float>();
-  encode_density(x, table, resolutions, offsets, log2_hashmap, w1, w2, rp, encoded.data_ptr<float>());
+                  t_ends.numel() == n && ray_indices.numel() == n && x.dim() == 2 && x.size(1) == 3,
+              "x float32 [S, 3], t_starts, t_ends float32 [S] and ray_indices int64 [S] expected");
+  x = x.contiguous();
   const auto t0 = t_starts.contiguous(), t1 = t_ends.contiguous(), ri = ray_indices.contiguous();
-  const float *t0p = t0.data_ptr<float>(), *t1p = t1.data_ptr<float>();
+  const float *xp = x.data_ptr<float>(), *t0p = t0.data_ptr<float>(), *t1p = t1.data_ptr<float>();
   const int64_t* rip = ri.data_ptr<int64_t>();
+  // the rays' runs of samples [begin[r], begin[r + 1])
+  std::vector<int64_t> begin;
+  for (int64_t i = 0; i < n; ++i)
+    if (i == 0 || rip[i] != rip[i - 1]) begin.push_back(i);
+  const int64_t rays = int64_t(begin.size());
+  begin.push_back(n);
+  std::vector<int64_t> next(begin.begin(), begin.end() - 1);  // each ray's first unqueried sample
+  std::vector<double> before(rays, 0.0);  // optical thickness of the ray's samples so far
+  std::vector<int64_t> active(rays);
+  for (int64_t r = 0; r < rays; ++r) active[r] = r;
   const float lim = float(max_log_density);
   // transmittance exp(-before) > min_transmittance, as a bound on the thickness (no exp)
   const double most = min_transmittance > 0 ? -std::log(min_transmittance) : INFINITY;
-  std::vector<int64_t> keep;
-  keep.reserve(n);
-  double before = 0.0;  // optical thickness of the ray's samples so far
-  for (int64_t i = 0; i < n; ++i) {
-    if (i == 0 || rip[i] != rip[i - 1]) before = 0.0;
-    if (before < most) keep.push_back(i);
-    float tau = std::exp(std::fmin(std::fmax(rp[i], -lim), lim)) * (t1p[i] - t0p[i]);
-    tau = std::isnan(tau) || std::isnan(rp[i]) ? 0.0f : std::fmin(std::fmax(tau, 0.0f), 1e4f);
-    before += double(tau);
+  const DensityQuery query(x, table, resolutions, offsets, log2_hashmap, w1, w2);
+  // The queried samples' encodings, round after round (at most n rows), and each sample's row
+  // there; kept per calling thread from call to call, so that its pages are not faulted in anew.
+  thread_local std::vector<float> encoded;
+  thread_local std::vector<int64_t> row;
+  encoded.resize(std::max(encoded.size(), size_t(n) * out_dim));
+  row.resize(std::max(row.size(), size_t(n)));
+  std::vector<int64_t> queried;
+  std::vector<float> xq, raw;
+  for (int64_t round = kVisibleRound, base = 0; !active.empty(); round *= 2) {
+    queried.clear();
+    for (const int64_t r : active)
+      for (int64_t i = next[r]; i < std::min(next[r] + round, begin[r + 1]); ++i)
+        queried.push_back(i);
+    const int64_t m = int64_t(queried.size());
+    xq.resize(3 * m), raw.resize(m);
+    for (int64_t j = 0; j < m; ++j) {
+      std::memcpy(xq.data() + 3 * j, xp + 3 * queried[j], 12);
+      row[queried[j]] = base + j;
+    }
+    query(xq.data(), m, raw.data(), encoded.data() + base * out_dim);
+    base += m;
+    const float* rp = raw.data();
+    int64_t j = 0, still = 0;
+    for (const int64_t r : active) {
+      const int64_t stop = std::min(next[r] + round, begin[r + 1]);
+      bool cut = false;
+      for (int64_t i = next[r]; i < stop; ++i, ++j) {
+        if (cut) continue;
+        if (before[r] >= most) { cut = true; continue; }
+        float tau = std::exp(std::fmin(std::fmax(rp[j], -lim), lim)) * (t1p[i] - t0p[i]);
+        tau = std::isnan(tau) || std::isnan(rp[j]) ? 0.0f : std::fmin(std::fmax(tau, 0.0f), 1e4f);
+        before[r] += double(tau);
+        next[r] = i + 1;
+      }
+      if (!cut && before[r] < most && next[r] < begin[r + 1]) active[still++] = r;
+    }
+    active.resize(still);
   }
-  const int64_t k = int64_t(keep.size());
+  // kept: each ray's samples before its cut (next[r]), in order
+  int64_t k = 0;
+  for (int64_t r = 0; r < rays; ++r) k += next[r] - begin[r];
   auto idx = torch::empty({k}, ray_indices.options());
-  std::memcpy(idx.data_ptr<int64_t>(), keep.data(), k * sizeof(int64_t));
   auto kept = torch::empty({k, out_dim}, x.options());
+  int64_t* ip = idx.data_ptr<int64_t>();
   float* kp = kept.data_ptr<float>();
-#pragma omp parallel for schedule(static) num_threads(at::get_num_threads())
-  for (int64_t j = 0; j < k; ++j) std::memcpy(kp + j * out_dim, ep + keep[j] * out_dim, out_dim * 4);
+  for (int64_t r = 0, o = 0; r < rays; ++r)
+    for (int64_t i = begin[r]; i < next[r]; ++i, ++o) {
+      ip[o] = i;
+      std::memcpy(kp + o * out_dim, encoded.data() + row[i] * out_dim, out_dim * 4);
+    }
   return {idx, kept};
 }
 
