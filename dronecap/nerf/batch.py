@@ -82,6 +82,9 @@ def whole_rays(rays: RayBatch, s: Samples, batch_samples: int) -> tuple[RayBatch
         # samples are packed by ray: a prefix of rays owns a prefix of samples (views, no copy)
         n = int(cum[keep - 1])
         enc = None if s.encoded is None else s.encoded[:n]
-        s = Samples(s.ray_indices[:n], s.t_starts[:n], s.t_ends[:n], s.counts[:keep], encoded=enc)
+        unit = None if s.unit is None else s.unit[:n]
+        s = Samples(
+            s.ray_indices[:n], s.t_starts[:n], s.t_ends[:n], s.counts[:keep], encoded=enc, unit=unit
+        )
         rays = rays.head(keep)
     return rays, s

@@ -42,7 +42,7 @@ def visible(
     s: Samples, origins: torch.Tensor, dirs: torch.Tensor, field: Field, min_transmittance: float
 ) -> Samples:
     """The samples of ``s`` with transmittance above ``min_transmittance`` before them, with
-    their hash encodings (``encoded``) for the training pass.
+    their hash encodings (``encoded``) and unit-cube midpoints (``unit``) for the training pass.
 
     Args:
         s: packed samples of R rays (ordered by ray).
@@ -58,18 +58,19 @@ def visible(
     """
     if min_transmittance <= 0:
         return s
-    points, ri = s.midpoints(origins, dirs), s.ray_indices
-    fused = field.visible_samples(points, (s.t_starts, s.t_ends, ri), min_transmittance)
+    ri = s.ray_indices
+    fused = field.visible_samples(origins, dirs, (s.t_starts, s.t_ends, ri), min_transmittance)
     if fused is not None:  # the same samples, in one C++ call
-        keep, encoded = fused
+        keep, encoded, unit = fused
     else:
+        points = s.midpoints(origins, dirs)
         sigma, encoded = field.density_and_encoding(points)
         _, trans = packed_weights(sigma * (s.t_ends - s.t_starts), ri, s.counts.numel())
         keep = (trans > min_transmittance).nonzero().squeeze(1)
-        encoded = encoded[keep]
+        encoded, unit = encoded[keep], field.unit(points[keep])
     ri = ri[keep]
     counts = torch.bincount(ri, minlength=s.counts.numel())
-    return Samples(ri, s.t_starts[keep], s.t_ends[keep], counts, encoded=encoded)
+    return Samples(ri, s.t_starts[keep], s.t_ends[keep], counts, encoded=encoded, unit=unit)
 
 
 @dataclass

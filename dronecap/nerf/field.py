@@ -187,19 +187,24 @@ class Field(nn.Module):
 
     @torch.no_grad()
     def visible_samples(
-        self, points: Tensor, samples: tuple[Tensor, Tensor, Tensor], min_transmittance: float
-    ) -> tuple[Tensor, Tensor] | None:
+        self,
+        origins: Tensor,
+        dirs: Tensor,
+        samples: tuple[Tensor, Tensor, Tensor],
+        min_transmittance: float,
+    ) -> tuple[Tensor, Tensor, Tensor] | None:
         """Compaction's pre-pass fused in C++ (:meth:`HashGrid.fused_visible`): of packed
-        samples at ``points`` [S, 3] (scene units) with ``samples`` = (t_starts, t_ends,
-        ray_indices), the indices [K] of those whose transmittance is above
-        ``min_transmittance`` and their hash encodings [K, levels * features]; None when the
-        fused kernels cannot run this field (:meth:`density_and_encoding`'s conditions)."""
+        samples ``samples`` = (t_starts, t_ends, ray_indices) on rays ``origins``, ``dirs``
+        [R, 3] (scene units), the indices [K] of those whose transmittance is above
+        ``min_transmittance``, their hash encodings [K, levels * features] and their midpoints
+        in the box's unit cube [K, 3] (what was encoded); None when the fused kernels cannot
+        run this field (:meth:`density_and_encoding`'s conditions)."""
         layers = self._density_rows()
         if layers is None:
             return None
-        unit = self.unit(points)
+        box = torch.stack([self.aabb_min, self.aabb_size])  # as :meth:`unit` maps
         return self.encoding.fused_visible(
-            unit, samples, *layers, MAX_LOG_DENSITY, min_transmittance
+            (origins, dirs, box), samples, *layers, MAX_LOG_DENSITY, min_transmittance
         )
 
     def _density_rows(self) -> tuple[Tensor, Tensor] | None:
@@ -241,29 +246,29 @@ class Field(nn.Module):
         return self.product_dtype == torch.bfloat16 and amx()
 
     def color_sigma(
-        self, points: Tensor, dir_enc: Tensor, ray_indices: Tensor, encoded: Tensor | None = None
+        self, unit: Tensor, dir_enc: Tensor, ray_indices: Tensor, encoded: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """Colour [N, C] in (0, 1) and density [N] per scene unit of samples, with autograd
         (the training pass).
 
         Args:
-            points: [N, 3] scene units.
+            unit: [N, 3] the samples in the box's unit cube (:meth:`unit` of scene points).
             dir_enc: [R, sh_degree^2] :meth:`dir_encoding` of each ray's direction.
             ray_indices: [N] int64, each sample's ray.
-            encoded: as in :meth:`geometry`.
+            encoded: the hash encoding of ``unit`` computed earlier without autograd, or None
+                (as in :meth:`geometry`).
 
         The fused C++ MLPs (:mod:`nerf.mlp_kernel`) when they can run this field (float32
-        storage and products, the presets' layer shapes), else the torch layers; the same
-        values and gradients up to float32 summation order.
+        storage and the presets' layer shapes), else the torch layers; the same values and
+        gradients up to float32 summation order (in fp32 products).
         """
+        enc = self.encoding(unit, cached=encoded)
         if self.prepare_kernels():
-            unit = self.unit(points)
-            enc = self.encoding(unit, cached=encoded)
             logits = field_logits(
                 enc, dir_enc, ray_indices, self.density_mlp, self.color_mlp, self._amx_bf16()
             )
             return torch.sigmoid(logits[:, 1:]), trunc_exp(logits[:, 0])
-        sigma, geo = self.geometry(points, encoded)
+        sigma, geo = self.geometry_from_encoding(enc)
         return self.color_from_encoding(geo, dir_enc[ray_indices]), sigma
 
     def color(self, geo: Tensor, dirs: Tensor) -> Tensor:

@@ -220,31 +220,35 @@ class HashGrid(torch.nn.Module):
 
     @torch.no_grad()
     def fused_visible(
-        self, x: Tensor, samples: tuple[Tensor, Tensor, Tensor], w1: Tensor, w2: Tensor,
-        max_log_density: float, min_transmittance: float,
-    ) -> tuple[Tensor, Tensor] | None:  # fmt: skip
+        self, rays: tuple[Tensor, Tensor, Tensor], samples: tuple[Tensor, Tensor, Tensor],
+        w1: Tensor, w2: Tensor, max_log_density: float, min_transmittance: float,
+    ) -> tuple[Tensor, Tensor, Tensor] | None:  # fmt: skip
         """Compaction's pre-pass in one C++ call (None as :meth:`fused_density`): the density
-        exp(clamp(w2 . relu(w1 @ encoding), +-max_log_density)) of packed samples, each
-        ray's transmittance before each sample (as :func:`nerf.volrend.packed_weights`), and
-        the samples where it is above ``min_transmittance``.
+        exp(clamp(w2 . relu(w1 @ encoding), +-max_log_density)) of packed samples at their
+        midpoints, each ray's transmittance before each sample (as
+        :func:`nerf.volrend.packed_weights`), and the samples where it is above
+        ``min_transmittance``. Rays march front to back and stop at their cut: samples behind
+        it are mostly never encoded.
 
         Args:
-            x: [S, 3] the samples' midpoints in the unit cube.
+            rays: (origins [R, 3], directions [R, 3], box [2, 3]: the min corner and size of the
+                box whose unit cube is encoded), scene units.
             samples: (t_starts [S], t_ends [S] scene units, ray_indices [S] int64 non-decreasing).
             w1, w2: as in :meth:`fused_density`.
 
         Returns:
             (indices [K] int64 of the kept samples, in order; their encodings [K, levels *
-            features]).
+            features]; their midpoints in the unit cube [K, 3], the encoded coordinates).
         """
         if not self._fusable():
             return None
+        origins, dirs, box = (t.detach().float() for t in rays)
         t0, t1, ri = samples
-        keep, encoded = load_extension().visible(
-            x.float().contiguous(), t0.float(), t1.float(), ri.long(), *self._table_args(),
+        keep, encoded, unit = load_extension().visible(
+            origins, dirs, t0.float(), t1.float(), ri.long(), box, *self._table_args(),
             w1.detach().float(), w2.detach().float(), max_log_density, min_transmittance,
         )  # fmt: skip
-        return keep, encoded
+        return keep, encoded, unit
 
     def _fusable(self) -> bool:
         """Whether the fused C++ queries can run: float32 storage and the C++ kernel."""

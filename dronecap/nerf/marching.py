@@ -24,7 +24,9 @@ class Samples:
     counts: int64 [n_rays] samples per ray; t_resume: float32 [n_rays] where a further march
     of the ray continues (``t_near + e * step``, ``e`` the candidates examined; >= t_far when
     the ray is done), or None when not computed; encoded: float32 [S, L * F] the hash encoding
-    of each sample's midpoint when :mod:`.compaction` computed it (no autograd), else None.
+    of each sample's midpoint when :mod:`.compaction` computed it (no autograd), else None;
+    unit: float32 [S, 3] those midpoints in the unit cube of the field's box, the coordinates
+    ``encoded`` encodes (set with it).
     """
 
     ray_indices: Tensor
@@ -33,6 +35,7 @@ class Samples:
     counts: Tensor
     t_resume: Tensor | None = None
     encoded: Tensor | None = None
+    unit: Tensor | None = None
 
     @property
     def n(self) -> int:
@@ -135,5 +138,6 @@ def tiles(s: Samples, tile_samples: int) -> Iterator[tuple[int, int, Samples]]:
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         sa, sb = sample_bounds[a], sample_bounds[b]
         enc = None if s.encoded is None else s.encoded[sa:sb]
+        unit = None if s.unit is None else s.unit[sa:sb]
         ri, t0, t1 = s.ray_indices[sa:sb] - a, s.t_starts[sa:sb], s.t_ends[sa:sb]
-        yield a, b, Samples(ri, t0, t1, s.counts[a:b], encoded=enc)
+        yield a, b, Samples(ri, t0, t1, s.counts[a:b], encoded=enc, unit=unit)

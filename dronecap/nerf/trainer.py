@@ -198,7 +198,8 @@ class Trainer:
         dir_enc = field.dir_encoding(dirs)  # once per ray, gathered per sample
 
         def color_sigma(t0, t1, ri):  # the samples of ``s``, in order
-            return field.color_sigma(s.midpoints(origins, dirs), dir_enc, ri, s.encoded)
+            unit = field.unit(s.midpoints(origins, dirs)) if s.unit is None else s.unit
+            return field.color_sigma(unit, dir_enc, ri, s.encoded)
 
         behind = field.behind(dirs, bg)  # the far field or the fixed background
         n_rays = origins.shape[0]

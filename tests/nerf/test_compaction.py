@@ -184,7 +184,10 @@ def test_the_fused_pre_pass_keeps_the_samples_the_torch_one_keeps():
         for thresh in (1e-4, 0.5):
             a, b = visible(s, o, d, fused, thresh), visible(s, o, d, plain, thresh)
             assert torch.equal(a.ray_indices, b.ray_indices) and torch.equal(a.counts, b.counts)
-            assert torch.equal(a.t_starts, b.t_starts) and torch.equal(a.encoded, b.encoded)
+            assert torch.equal(a.t_starts, b.t_starts)
+            # the C++ midpoints may round differently from torch's in the last bit
+            assert torch.allclose(a.unit, b.unit, rtol=0, atol=1e-6)
+            assert torch.allclose(a.encoded, b.encoded, rtol=0, atol=1e-4)
         kept = visible(s, o, d, fused, 1e-4).n
         if scale == 0.0:
             assert kept == s.n  # density exp(0) = 1 per unit over ~2 units of ray: all kept

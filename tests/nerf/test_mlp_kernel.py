@@ -125,8 +125,8 @@ def test_field_colour_and_density_of_samples_follow_the_torch_path():
     plain._fused_mlp = False  # the torch layers
     pts = torch.rand(500, 3) * 2 - 1
     _, dir_enc, ri = _samples(fused, 500, rays=60)
-    c1, s1 = fused.color_sigma(pts, dir_enc, ri)
-    c2, s2 = plain.color_sigma(pts, dir_enc, ri)
+    c1, s1 = fused.color_sigma(fused.unit(pts), dir_enc, ri)
+    c2, s2 = plain.color_sigma(plain.unit(pts), dir_enc, ri)
     assert fused._fused_mlp and torch.allclose(c1, c2, atol=1e-6)
     assert torch.allclose(s1, s2, rtol=1e-5)
     (c1.sum() + s1.sum()).backward()
@@ -143,12 +143,12 @@ def test_huge_and_zero_weights_stay_finite():
         f.density_mlp[-1].weight.mul_(1e6)
         f.color_mlp[-1].weight.mul_(1e6)
     pts = torch.rand(64, 3) * 2 - 1
-    c, s = f.color_sigma(pts, dir_enc, ri)
+    c, s = f.color_sigma(f.unit(pts), dir_enc, ri)
     assert torch.isfinite(c).all() and torch.isfinite(s).all() and (s >= 0).all()
     with torch.no_grad():
         for p in f.parameters():
             p.zero_()
-    c, s = f.color_sigma(pts, dir_enc, ri)
+    c, s = f.color_sigma(f.unit(pts), dir_enc, ri)
     assert torch.equal(c, torch.full_like(c, 0.5)) and torch.equal(s, torch.ones_like(s))
 
 

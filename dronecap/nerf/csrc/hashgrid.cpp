@@ -390,20 +390,26 @@ void backward_range(const float* x, const float* grad_out, float* grad, int64_t 
   }
 }
 
-// The levels of a forward call, after checking x [N, 3] and table [rows, F] against them.
-std::vector<Level> checked_levels(const torch::Tensor& x, const torch::Tensor& table,
-                                  const std::vector<int64_t>& resolutions,
-                                  const std::vector<int64_t>& offsets, int64_t log2_hashmap) {
-  TORCH_CHECK(x.device().is_cpu() && table.device().is_cpu(), "CPU tensors expected");
-  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32 &&
-                  x.is_contiguous(),
-              "x must be a contiguous float32 [N, 3] tensor");
-  TORCH_CHECK(table.dim() == 2 && table.scalar_type() == torch::kFloat32 && table.is_contiguous(),
-              "table must be a contiguous float32 [rows, F] tensor");
+// The levels of a table [rows, F], checked against it.
+std::vector<Level> table_levels(const torch::Tensor& table, const std::vector<int64_t>& resolutions,
+                                const std::vector<int64_t>& offsets, int64_t log2_hashmap) {
+  TORCH_CHECK(table.device().is_cpu() && table.dim() == 2 &&
+                  table.scalar_type() == torch::kFloat32 && table.is_contiguous(),
+              "table must be a contiguous float32 [rows, F] CPU tensor");
   auto levels = make_levels(resolutions, offsets, log2_hashmap);
   TORCH_CHECK(table.size(0) == offsets.back(), "table has ", table.size(0), " rows, expected ",
               offsets.back());
   return levels;
+}
+
+// The levels of a forward call, after checking x [N, 3] and table [rows, F] against them.
+std::vector<Level> checked_levels(const torch::Tensor& x, const torch::Tensor& table,
+                                  const std::vector<int64_t>& resolutions,
+                                  const std::vector<int64_t>& offsets, int64_t log2_hashmap) {
+  TORCH_CHECK(x.device().is_cpu() && x.dim() == 2 && x.size(1) == 3 &&
+                  x.scalar_type() == torch::kFloat32 && x.is_contiguous(),
+              "x must be a contiguous float32 [N, 3] CPU tensor");
+  return table_levels(table, resolutions, offsets, log2_hashmap);
 }
 
 #define DISPATCH_F(nf, FN, ...)     \
@@ -596,10 +602,10 @@ struct DensityQuery {
   torch::Tensor table, w1t, w2c;  // kept alive for the pointers below
   const float *tp, *w1p, *w2p;
 
-  DensityQuery(const torch::Tensor& x, const torch::Tensor& table_,
-               const std::vector<int64_t>& resolutions, const std::vector<int64_t>& offsets,
-               int64_t log2_hashmap, const torch::Tensor& w1, const torch::Tensor& w2)
-      : levels(checked_levels(x, table_, resolutions, offsets, log2_hashmap)),
+  DensityQuery(const torch::Tensor& table_, const std::vector<int64_t>& resolutions,
+               const std::vector<int64_t>& offsets, int64_t log2_hashmap, const torch::Tensor& w1,
+               const torch::Tensor& w2)
+      : levels(table_levels(table_, resolutions, offsets, log2_hashmap)),
         nf(table_.size(1)),
         out_dim(int64_t(levels.size()) * nf),
         hidden(w1.size(0)),
@@ -646,19 +652,22 @@ std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
   const int64_t n = x.size(0), out_dim = int64_t(resolutions.size()) * table.size(1);
   auto raw = torch::empty({n}, x.options());
   auto encoded = torch::empty({keep_encoded ? n : 0, out_dim}, x.options());
-  const DensityQuery query(x, table, resolutions, offsets, log2_hashmap, w1, w2);
+  checked_levels(x, table, resolutions, offsets, log2_hashmap);
+  const DensityQuery query(table, resolutions, offsets, log2_hashmap, w1, w2);
   query(x.data_ptr<float>(), n, raw.data_ptr<float>(),
         keep_encoded ? encoded.data_ptr<float>() : nullptr);
   return {raw, encoded};
 }
 
-// Compaction's pre-pass in one call: the density of packed samples (unit-cube midpoints x [S, 3],
-// intervals [t_start, t_end) in scene units, ray_indices [S] non-decreasing), each ray's
-// transmittance before each sample (exp of minus the optical thickness summed in double, as
-// nerf/volrend.packed_weights), and the samples where it is above min_transmittance.
-// Density = exp(raw clamped to +-max_log_density); thickness = density * length, NaN -> 0,
-// clamped to [0, 1e4] (the reference's rules). Returns {kept sample indices int64 [K], their
-// encodings [K, L*F]}.
+// Compaction's pre-pass in one call: the density of packed samples (intervals [t_start, t_end)
+// in scene units along rays origins [R, 3] + t dirs [R, 3], ray_indices [S] non-decreasing),
+// each ray's transmittance before each sample (exp of minus the optical thickness summed in
+// double, as nerf/volrend.packed_weights), and the samples where it is above min_transmittance.
+// A sample is queried at its midpoint mapped to the unit cube of the box (box [2, 3]: its min
+// corner and size): (o + d (t_start + t_end) / 2 - min) / size. Density = exp(raw clamped to
+// +-max_log_density); thickness = density * length, NaN -> 0, clamped to [0, 1e4] (the
+// reference's rules). Returns {kept sample indices int64 [K], their encodings [K, L*F], their
+// unit-cube midpoints [K, 3]} (the training pass encodes exactly these coordinates).
 //
 // The rays march front to back in rounds: each round queries the next samples of every ray
 // still above the threshold (kVisibleRound in the first round, twice as many in each next one:
@@ -667,25 +676,36 @@ std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
 // never encoded; what is kept is exactly what querying every sample would keep.
 constexpr int64_t kVisibleRound = 4;
 
-std::vector<torch::Tensor> visible_forward(torch::Tensor x, torch::Tensor t_starts,
-                                           torch::Tensor t_ends, torch::Tensor ray_indices,
+std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor dirs,
+                                           torch::Tensor t_starts, torch::Tensor t_ends,
+                                           torch::Tensor ray_indices, torch::Tensor box,
                                            torch::Tensor table, std::vector<int64_t> resolutions,
                                            std::vector<int64_t> offsets, int64_t log2_hashmap,
                                            torch::Tensor w1, torch::Tensor w2,
                                            double max_log_density, double min_transmittance) {
-  const int64_t n = x.size(0), out_dim = int64_t(resolutions.size()) * table.size(1);
-  TORCH_CHECK(t_starts.scalar_type() == torch::kFloat32 && t_ends.scalar_type() == torch::kFloat32 &&
-                  ray_indices.scalar_type() == torch::kInt64 && t_starts.numel() == n &&
-                  t_ends.numel() == n && ray_indices.numel() == n && x.dim() == 2 && x.size(1) == 3,
-              "x float32 [S, 3], t_starts, t_ends float32 [S] and ray_indices int64 [S] expected");
-  x = x.contiguous();
+  const int64_t n = t_starts.numel(), out_dim = int64_t(resolutions.size()) * table.size(1);
+  for (const auto* t : {&origins, &dirs, &t_starts, &t_ends, &box})
+    TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == torch::kFloat32,
+                "float32 CPU tensors expected");
+  TORCH_CHECK(origins.dim() == 2 && origins.size(1) == 3 && dirs.sizes() == origins.sizes() &&
+                  box.numel() == 6 && t_ends.numel() == n && ray_indices.numel() == n &&
+                  ray_indices.scalar_type() == torch::kInt64,
+              "origins, dirs [R, 3], box [2, 3], t_starts, t_ends [S], ray_indices int64 [S]");
+  const auto o = origins.contiguous(), d = dirs.contiguous(), b = box.contiguous();
   const auto t0 = t_starts.contiguous(), t1 = t_ends.contiguous(), ri = ray_indices.contiguous();
-  const float *xp = x.data_ptr<float>(), *t0p = t0.data_ptr<float>(), *t1p = t1.data_ptr<float>();
+  const float *op = o.data_ptr<float>(), *dp = d.data_ptr<float>(), *bp = b.data_ptr<float>();
+  const float *t0p = t0.data_ptr<float>(), *t1p = t1.data_ptr<float>();
   const int64_t* rip = ri.data_ptr<int64_t>();
+  const int64_t n_rays = o.size(0);
+  const float lo[3] = {bp[0], bp[1], bp[2]};
+  const float size[3] = {bp[3], bp[4], bp[5]};
   // the rays' runs of samples [begin[r], begin[r + 1])
   std::vector<int64_t> begin;
-  for (int64_t i = 0; i < n; ++i)
+  for (int64_t i = 0; i < n; ++i) {
+    TORCH_CHECK(rip[i] >= 0 && rip[i] < n_rays && (i == 0 || rip[i] >= rip[i - 1]),
+                "ray_indices must be non-decreasing indices of the rays");
     if (i == 0 || rip[i] != rip[i - 1]) begin.push_back(i);
+  }
   const int64_t rays = int64_t(begin.size());
   begin.push_back(n);
   std::vector<int64_t> next(begin.begin(), begin.end() - 1);  // each ray's first unqueried sample
@@ -695,27 +715,32 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor x, torch::Tensor t_star
   const float lim = float(max_log_density);
   // transmittance exp(-before) > min_transmittance, as a bound on the thickness (no exp)
   const double most = min_transmittance > 0 ? -std::log(min_transmittance) : INFINITY;
-  const DensityQuery query(x, table, resolutions, offsets, log2_hashmap, w1, w2);
-  // The queried samples' encodings, round after round (at most n rows), and each sample's row
-  // there; kept per calling thread from call to call, so that its pages are not faulted in anew.
-  thread_local std::vector<float> encoded;
+  const DensityQuery query(table, resolutions, offsets, log2_hashmap, w1, w2);
+  // The queried samples' unit-cube midpoints and encodings, round after round (at most n rows),
+  // and each sample's row there; kept per calling thread from call to call, so that their
+  // pages are not faulted in anew.
+  thread_local std::vector<float> xq, encoded;
   thread_local std::vector<int64_t> row;
+  xq.resize(std::max(xq.size(), size_t(n) * 3));
   encoded.resize(std::max(encoded.size(), size_t(n) * out_dim));
   row.resize(std::max(row.size(), size_t(n)));
   std::vector<int64_t> queried;
-  std::vector<float> xq, raw;
+  std::vector<float> raw;
   for (int64_t round = kVisibleRound, base = 0; !active.empty(); round *= 2) {
     queried.clear();
     for (const int64_t r : active)
       for (int64_t i = next[r]; i < std::min(next[r] + round, begin[r + 1]); ++i)
         queried.push_back(i);
     const int64_t m = int64_t(queried.size());
-    xq.resize(3 * m), raw.resize(m);
+    raw.resize(m);
     for (int64_t j = 0; j < m; ++j) {
-      std::memcpy(xq.data() + 3 * j, xp + 3 * queried[j], 12);
-      row[queried[j]] = base + j;
+      const int64_t i = queried[j], r = rip[i];
+      const float mid = 0.5f * (t0p[i] + t1p[i]);
+      float* x = xq.data() + 3 * (base + j);
+      for (int k = 0; k < 3; ++k) x[k] = (op[3 * r + k] + dp[3 * r + k] * mid - lo[k]) / size[k];
+      row[i] = base + j;
     }
-    query(xq.data(), m, raw.data(), encoded.data() + base * out_dim);
+    query(xq.data() + 3 * base, m, raw.data(), encoded.data() + base * out_dim);
     base += m;
     const float* rp = raw.data();
     int64_t j = 0, still = 0;
@@ -738,15 +763,17 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor x, torch::Tensor t_star
   int64_t k = 0;
   for (int64_t r = 0; r < rays; ++r) k += next[r] - begin[r];
   auto idx = torch::empty({k}, ray_indices.options());
-  auto kept = torch::empty({k, out_dim}, x.options());
+  auto kept = torch::empty({k, out_dim}, t0.options());
+  auto unit = torch::empty({k, 3}, t0.options());
   int64_t* ip = idx.data_ptr<int64_t>();
-  float* kp = kept.data_ptr<float>();
-  for (int64_t r = 0, o = 0; r < rays; ++r)
-    for (int64_t i = begin[r]; i < next[r]; ++i, ++o) {
-      ip[o] = i;
-      std::memcpy(kp + o * out_dim, encoded.data() + row[i] * out_dim, out_dim * 4);
+  float *kp = kept.data_ptr<float>(), *up = unit.data_ptr<float>();
+  for (int64_t r = 0, j = 0; r < rays; ++r)
+    for (int64_t i = begin[r]; i < next[r]; ++i, ++j) {
+      ip[j] = i;
+      std::memcpy(kp + j * out_dim, encoded.data() + row[i] * out_dim, out_dim * 4);
+      std::memcpy(up + 3 * j, xq.data() + 3 * row[i], 12);
     }
-  return {idx, kept};
+  return {idx, kept, unit};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -758,8 +785,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "(raw [N], encoded [N, L*F] or empty)",
         py::call_guard<py::gil_scoped_release>());
   m.def("visible", &visible_forward,
-        "compaction's pre-pass: (x, t_starts, t_ends, ray_indices, table, ..., w1, w2, "
-        "max_log_density, min_transmittance) -> (kept indices, their encodings)",
+        "compaction's pre-pass: (origins, dirs, t_starts, t_ends, ray_indices, box, table, ..., "
+        "w1, w2, max_log_density, min_transmittance) -> (kept indices, encodings, unit points)",
         py::call_guard<py::gil_scoped_release>());
   m.def("backward", &hash_backward, "hash encoding backward: scatter-add of grad_out into the table",
         py::call_guard<py::gil_scoped_release>());
