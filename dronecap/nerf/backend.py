@@ -5,7 +5,8 @@ fused MLPs (``csrc/mlp.cpp``) are compiled
 on first use with ``torch.utils.cpp_extension`` and cached on disk under
 ``$XDG_CACHE_HOME/dronecap/torch_extensions/<name>-<key>`` (``~/.cache`` by default), where
 the key hashes the torch version, the Python version, where torch and the source are installed,
-the kernel's C++ source and the CPU's instruction-set flags (builds use ``-march=native``): two
+the kernel's C++ source (and the headers in csrc/) and the CPU's instruction-set flags (builds
+use ``-march=native``): two
 installs or checkouts on one machine, or a shared home on two CPUs, never load or rebuild each
 other's build.
 
@@ -63,8 +64,8 @@ def _flags(name: str) -> tuple[str, ...]:
 
 def cache_key(name: str) -> str:
     """12 hex digits naming a build of kernel ``name``: sha256 of the torch version, Python
-    version, the install's torch and source paths, the kernel's C++ source and flags, and the
-    CPU flags."""
+    version, the install's torch and source paths, the kernel's C++ source, the csrc/ headers,
+    its flags, and the CPU flags."""
     import torch
 
     source, flags = KERNELS[name][0], _flags(name)
@@ -74,7 +75,8 @@ def cache_key(name: str) -> str:
     where = (str(Path(torch.__file__).resolve().parent), str((CSRC / source).resolve()))
     for part in (torch.__version__, sys.version, *where, " ".join(flags), cpu_flags()):
         h.update(part.encode() + b"\0")
-    h.update((CSRC / source).read_bytes())
+    for path in (CSRC / source, *sorted(CSRC.glob("*.h"))):
+        h.update(path.read_bytes())
     return h.hexdigest()[:12]
 
 

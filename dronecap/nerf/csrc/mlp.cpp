@@ -18,25 +18,26 @@
 // whatever the target has, so the one code path builds everywhere. Widths that are not a
 // multiple of 16 (C = 1 or 3, any E, G, S) are zero-padded in the transposed copies and tiles;
 // padded rows and columns contribute nothing.
+//
+// With `bf16` (a CPU with AMX-BF16 tiles) the same layers multiply bf16-rounded inputs on the
+// AMX tile unit, summing in float32 (amx_bf16.h): ~4x fewer cycles per step for the MLPs.
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
 #include <omp.h>
 
-#if defined(__AMX_BF16__) && defined(__AMX_TILE__) && defined(__AVX512BF16__)
-#define DRONECAP_AMX 1
-#include <immintrin.h>
-#include <sys/syscall.h>
-#include <unistd.h>
-#endif
-
 #include <algorithm>
 #include <cstdint>
 #include <cstring>
 #include <memory>
+#include <type_traits>
 #include <vector>
 
+#include "amx_bf16.h"
+
 namespace {
+
+using amx::bf16;
 
 typedef float v16 __attribute__((vector_size(64)));
 constexpr int kW = 16;     // floats per vector
@@ -162,251 +163,8 @@ std::vector<float> padded(const torch::Tensor& w, bool transpose, int rows_to, i
   return out;
 }
 
-// ---- bf16 products on AMX tiles (Intel Sapphire Rapids and later) ----
-//
-// With `bf16` the products' inputs are rounded to bfloat16 and multiplied on the AMX tile unit,
-// which sums in float32 (TDPBF16PS: a 16 x 32 by 32 x 16 product per instruction, ~16x the
-// AVX-512 float32 rate); outputs, ReLUs and the weight gradients (the outer products) stay
-// float32. A tile register here is always 16 rows of 64 bytes: 16 x 16 floats (a result),
-// 16 x 32 bf16 (an input block: 16 samples, 32 reduction columns), or 16 pairs of weight rows
-// interleaved (a weight block: 32 reduction rows, 16 output columns).
-
-typedef uint16_t bf16;  // bfloat16 bits
-inline int pad32(int n) { return (n + 31) / 32 * 32; }
-
-// float32 -> bfloat16, rounded to nearest even (as the AVX-512 conversion instructions do).
-inline bf16 to_bf16(float f) {
-  uint32_t u;
-  std::memcpy(&u, &f, 4);
-  return bf16((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
-}
-
-// M [n_in, n_out] (n_out a multiple of 16) as AMX weight blocks: block (kc, nb) covers rows
-// 32 kc .. 32 kc + 31 and columns 16 nb .. 16 nb + 15; its row r holds M[32 kc + 2r][c] and
-// M[32 kc + 2r + 1][c] side by side for each of the 16 columns c. Rows beyond n_in are zeros.
-std::vector<bf16> pack_bf16(const std::vector<float>& m, int n_in, int n_out) {
-  const int kp = pad32(n_in), nbt = n_out / kW;
-  std::vector<bf16> out(size_t(kp) * n_out, 0);
-  for (int k = 0; k < n_in; ++k)
-    for (int c = 0; c < n_out; ++c) {
-      const size_t block = size_t(k / 32) * nbt + c / kW;
-      out[block * 512 + (k % 32) / 2 * 32 + (c % kW) * 2 + k % 2] = to_bf16(m[size_t(k) * n_out + c]);
-    }
-  return out;
-}
-
-// Whether this process can run the AMX products: built for a CPU with AMX-BF16 (-march=native)
-// and granted the tile state by Linux (asked once per process).
-bool amx_available() {
-#ifdef DRONECAP_AMX
-  static const bool ok = syscall(SYS_arch_prctl, 0x1023 /* ARCH_REQ_XCOMP_PERM */,
-                                 18 /* XFEATURE_XTILEDATA */) == 0;
-  return ok;
-#else
-  return false;
-#endif
-}
-
-#ifdef DRONECAP_AMX
-// Loads the one tile configuration (8 registers of 16 x 64 bytes) for this thread.
-void amx_begin() {
-  struct {
-    uint8_t palette, start_row, reserved[14];
-    uint16_t colsb[16];
-    uint8_t rows[16];
-  } cfg{};
-  cfg.palette = 1;
-  for (int i = 0; i < 8; ++i) cfg.colsb[i] = 64, cfg.rows[i] = 16;
-  _tile_loadconfig(&cfg);
-}
-void amx_end() { _tile_release(); }
-
-// X [kTile, n] float32 rows -> bf16 rows of ldo (a multiple of 32) columns, zeros beyond n.
-void rows_to_bf16(const float* x, int ldx, int n, bf16* o, int ldo) {
-  for (int p = 0; p < kTile; ++p)
-    for (int c = 0; c < ldo; c += 32) {
-      const int lo = std::clamp(n - c, 0, 16), hi = std::clamp(n - c - 16, 0, 16);
-      const __m512 a = _mm512_maskz_loadu_ps(__mmask16((1u << lo) - 1), x + p * ldx + c);
-      const __m512 b = _mm512_maskz_loadu_ps(__mmask16((1u << hi) - 1), x + p * ldx + c + 16);
-      _mm512_storeu_si512(o + p * ldo + c, (__m512i)_mm512_cvtne2ps_pbh(b, a));
-    }
-}
-
-// Y[16 rows, NB x 16 columns from 16 nb0] = X[16, kp] M for one 16-row group; tiles 0..3 hold
-// the results, 4 the input block, 6 and 7 the weight blocks. (Tile numbers are immediates.)
-template <int NB>
-inline void amx_rows(const bf16* x, int kp, const bf16* m, int nbt, int nb0, float* y, int ldy) {
-  _tile_zero(0);
-  if (NB > 1) _tile_zero(1);
-  if (NB > 2) _tile_zero(2);
-  if (NB > 3) _tile_zero(3);
-  for (int kc = 0; kc < kp / 32; ++kc) {
-    _tile_loadd(4, x + kc * 32, kp * 2);
-    const bf16* b = m + (size_t(kc) * nbt + nb0) * 512;
-    _tile_loadd(6, b, 64);
-    _tile_dpbf16ps(0, 4, 6);
-    if (NB > 1) { _tile_loadd(7, b + 512, 64); _tile_dpbf16ps(1, 4, 7); }
-    if (NB > 2) { _tile_loadd(6, b + 1024, 64); _tile_dpbf16ps(2, 4, 6); }
-    if (NB > 3) { _tile_loadd(7, b + 1536, 64); _tile_dpbf16ps(3, 4, 7); }
-  }
-  _tile_stored(0, y, ldy * 4);
-  if (NB > 1) _tile_stored(1, y + 16, ldy * 4);
-  if (NB > 2) _tile_stored(2, y + 32, ldy * 4);
-  if (NB > 3) _tile_stored(3, y + 48, ldy * 4);
-}
-
-// amx_rows for both 16-row groups of the tile at once (NB = 1 or 2 column blocks): results in
-// tiles 0..2 NB - 1, so that narrow layers still have independent sums in flight.
-template <int NB>
-inline void amx_rows2(const bf16* x, int kp, const bf16* m, int nbt, int nb0, float* y, int ldy) {
-  _tile_zero(0);
-  _tile_zero(1);
-  if (NB > 1) { _tile_zero(2); _tile_zero(3); }
-  for (int kc = 0; kc < kp / 32; ++kc) {
-    _tile_loadd(4, x + kc * 32, kp * 2);
-    _tile_loadd(5, x + 16 * kp + kc * 32, kp * 2);
-    const bf16* b = m + (size_t(kc) * nbt + nb0) * 512;
-    _tile_loadd(6, b, 64);
-    _tile_dpbf16ps(0, 4, 6);
-    _tile_dpbf16ps(1, 5, 6);
-    if (NB > 1) {
-      _tile_loadd(7, b + 512, 64);
-      _tile_dpbf16ps(2, 4, 7);
-      _tile_dpbf16ps(3, 5, 7);
-    }
-  }
-  _tile_stored(0, y, ldy * 4);
-  _tile_stored(1, y + 16 * ldy, ldy * 4);
-  if (NB > 1) { _tile_stored(2, y + 16, ldy * 4); _tile_stored(3, y + 16 * ldy + 16, ldy * 4); }
-}
-
-// tile_product's result from bf16 inputs X [kTile, kp] and packed weights (pack_bf16).
-void amx_product(const bf16* x, int kp, const bf16* m, int n_out, float* y, int ldy, Out out,
-                 const float* mask) {
-  const int nbt = n_out / kW;
-  static_assert(kTile == 32, "a tile is two 16-row groups");
-  if (nbt <= 2) {
-    if (nbt == 2) amx_rows2<2>(x, kp, m, nbt, 0, y, ldy);
-    else amx_rows2<1>(x, kp, m, nbt, 0, y, ldy);
-  } else for (int r = 0; r < kTile; r += 16)
-    for (int nb = 0; nb < nbt; nb += 4) {
-      const bf16* xr = x + r * kp;
-      float* yr = y + r * ldy + nb * kW;
-      switch (std::min(4, nbt - nb)) {
-        case 4: amx_rows<4>(xr, kp, m, nbt, nb, yr, ldy); break;
-        case 3: amx_rows<3>(xr, kp, m, nbt, nb, yr, ldy); break;
-        case 2: amx_rows<2>(xr, kp, m, nbt, nb, yr, ldy); break;
-        default: amx_rows<1>(xr, kp, m, nbt, nb, yr, ldy); break;
-      }
-    }
-  if (out == kPlain) return;
-  for (int p = 0; p < kTile; ++p)
-    for (int q = 0; q < n_out; q += kW) {
-      const v16 v = vload(y + p * ldy + q);
-      const v16 gate = out == kRelu ? v : vload(mask + p * ldy + q);
-      vstore(y + p * ldy + q, gate > v16{} ? v : v16{});
-    }
-}
-
-// The 16 x 16 floats at src (row stride lds) transposed into out[16] (out[j] = column j):
-// 4 x 4 transposes within each 128-bit lane, then a 4 x 4 transpose of the lanes.
-inline void transpose16(const float* src, int lds, __m512 out[16]) {
-  __m512 r[16], t[16];
-  for (int i = 0; i < 16; ++i) r[i] = _mm512_loadu_ps(src + i * lds);
-  for (int i = 0; i < 16; i += 2) {
-    t[i] = _mm512_unpacklo_ps(r[i], r[i + 1]);
-    t[i + 1] = _mm512_unpackhi_ps(r[i], r[i + 1]);
-  }
-  for (int i = 0; i < 16; i += 4) {
-    const __m512d a = _mm512_castps_pd(t[i]), b = _mm512_castps_pd(t[i + 1]);
-    const __m512d c = _mm512_castps_pd(t[i + 2]), d = _mm512_castps_pd(t[i + 3]);
-    r[i] = _mm512_castpd_ps(_mm512_unpacklo_pd(a, c));
-    r[i + 1] = _mm512_castpd_ps(_mm512_unpackhi_pd(a, c));
-    r[i + 2] = _mm512_castpd_ps(_mm512_unpacklo_pd(b, d));
-    r[i + 3] = _mm512_castpd_ps(_mm512_unpackhi_pd(b, d));
-  }
-  // r[4i + c] holds, in lane L, column 4L + c of rows 4i .. 4i + 3
-  for (int c = 0; c < 4; ++c) {
-    const __m512 u0 = _mm512_shuffle_f32x4(r[c], r[4 + c], 0x44);
-    const __m512 u1 = _mm512_shuffle_f32x4(r[c], r[4 + c], 0xEE);
-    const __m512 u2 = _mm512_shuffle_f32x4(r[8 + c], r[12 + c], 0x44);
-    const __m512 u3 = _mm512_shuffle_f32x4(r[8 + c], r[12 + c], 0xEE);
-    out[c] = _mm512_shuffle_f32x4(u0, u2, 0x88);
-    out[4 + c] = _mm512_shuffle_f32x4(u0, u2, 0xDD);
-    out[8 + c] = _mm512_shuffle_f32x4(u1, u3, 0x88);
-    out[12 + c] = _mm512_shuffle_f32x4(u1, u3, 0xDD);
-  }
-}
-
-// C [16, NB x 16] (row stride ldc floats) += (input block in tile 4) (weight blocks at b, each
-// 512 apart): NB result tiles in flight, so that their loads, sums and stores overlap.
-template <int NB>
-inline void amx_sum_into(const bf16* b, float* c, int ldc) {
-  _tile_loadd(0, c, ldc * 4);
-  if (NB > 1) _tile_loadd(1, c + 16, ldc * 4);
-  if (NB > 2) _tile_loadd(2, c + 32, ldc * 4);
-  if (NB > 3) _tile_loadd(3, c + 48, ldc * 4);
-  _tile_loadd(6, b, 64);
-  _tile_dpbf16ps(0, 4, 6);
-  if (NB > 1) { _tile_loadd(7, b + 512, 64); _tile_dpbf16ps(1, 4, 7); }
-  if (NB > 2) { _tile_loadd(6, b + 1024, 64); _tile_dpbf16ps(2, 4, 6); }
-  if (NB > 3) { _tile_loadd(7, b + 1536, 64); _tile_dpbf16ps(3, 4, 7); }
-  _tile_stored(0, c, ldc * 4);
-  if (NB > 1) _tile_stored(1, c + 16, ldc * 4);
-  if (NB > 2) _tile_stored(2, c + 32, ldc * 4);
-  if (NB > 3) _tile_stored(3, c + 48, ldc * 4);
-}
-
-// tile_outer on the AMX tiles: dW [n_rows (a multiple of 16), width] += dY^T X over the tile's
-// kTile = 32 samples, with dY [kTile, ldd] and X [kTile, ldx] rounded to bf16. The input
-// blocks are dY transposed (16 rows of dW by the 32 samples) and the weight blocks X with its
-// sample pairs interleaved; dW's 16 x 16 blocks are loaded, summed into and stored.
-void amx_outer(const float* dy, int ldd, int n_rows, const float* x, int ldx, int width, float* dw,
-               bf16* scratch) {
-  static_assert(kTile == 32, "a tile's samples are one AMX reduction block");
-  bf16* xs = scratch;                    // width / 16 weight blocks of 512
-  bf16* ys = scratch + size_t(width) * 32;  // n_rows / 16 input blocks of 512
-  alignas(64) static const uint16_t pairs[32] = {0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21,
-                                                 6, 22, 7, 23, 8, 24, 9, 25, 10, 26, 11, 27,
-                                                 12, 28, 13, 29, 14, 30, 15, 31};
-  const __m512i interleave = _mm512_load_si512(pairs);
-  for (int kb = 0; kb < width / 16; ++kb)
-    for (int r = 0; r < 16; ++r) {
-      const __m512 a = _mm512_loadu_ps(x + (2 * r) * ldx + kb * 16);
-      const __m512 b = _mm512_loadu_ps(x + (2 * r + 1) * ldx + kb * 16);
-      const __m512i v = (__m512i)_mm512_cvtne2ps_pbh(b, a);
-      _mm512_storeu_si512(xs + kb * 512 + r * 32, _mm512_permutexvar_epi16(interleave, v));
-    }
-  for (int jb = 0; jb < n_rows / 16; ++jb) {
-    __m512 lo[16], hi[16];
-    transpose16(dy + jb * 16, ldd, lo);
-    transpose16(dy + 16 * ldd + jb * 16, ldd, hi);
-    for (int j = 0; j < 16; ++j)
-      _mm512_storeu_si512(ys + jb * 512 + j * 32, (__m512i)_mm512_cvtne2ps_pbh(hi[j], lo[j]));
-  }
-  for (int jb = 0; jb < n_rows / 16; ++jb) {
-    _tile_loadd(4, ys + jb * 512, 64);
-    for (int kb = 0; kb < width / 16; kb += 4) {
-      float* c = dw + size_t(jb) * 16 * width + kb * 16;
-      switch (std::min(4, width / 16 - kb)) {
-        case 4: amx_sum_into<4>(xs + kb * 512, c, width); break;
-        case 3: amx_sum_into<3>(xs + kb * 512, c, width); break;
-        case 2: amx_sum_into<2>(xs + kb * 512, c, width); break;
-        default: amx_sum_into<1>(xs + kb * 512, c, width); break;
-      }
-    }
-  }
-}
-#else
-void amx_begin() {}
-void amx_end() {}
-void rows_to_bf16(const float*, int, int, bf16*, int) {}
-void amx_product(const bf16*, int, const bf16*, int, float*, int, Out, const float*) {}
-void amx_outer(const float*, int, int, const float*, int, int, float*, bf16*) {}
-#endif
-
 // One product's weights: M [n_in, n_out] float32 (n_out a multiple of 16) and, for bf16
-// products, M packed for the AMX tiles.
+// products, M packed for the AMX tiles (amx::pack).
 struct Layer {
   std::vector<float> m;
   int n_in, n_out;
@@ -415,7 +173,7 @@ struct Layer {
 
 Layer layer(const torch::Tensor& w, bool transpose, int rows_to, int cols_to, int n_in, bool bf16) {
   Layer l{padded(w, transpose, rows_to, cols_to), n_in, cols_to, {}};
-  if (bf16) l.packed = pack_bf16(l.m, n_in, cols_to);
+  if (bf16) l.packed = amx::pack(l.m, n_in, cols_to);
   return l;
 }
 
@@ -428,7 +186,6 @@ struct Dims {
 // backward's input gradients read them (bwd: M = W [out, in_padded]).
 struct Weights {
   Layer fwd[5], bwd[5];
-  bool bf16;
 };
 
 Weights prepare(const Dims& d, const torch::Tensor& w1, const torch::Tensor& w2,
@@ -440,9 +197,33 @@ Weights prepare(const Dims& d, const torch::Tensor& w1, const torch::Tensor& w2,
            layer(w5, true, d.H, d.Cp, d.H, bf16)},
           {layer(w1, false, d.H, d.Ep, d.H, bf16), layer(w2, false, d.G, d.H, d.G, bf16),
            layer(w3, false, d.H, d.Cinp, d.H, bf16), layer(w4, false, d.H, d.H, d.H, bf16),
-           layer(w5, false, d.C, d.H, d.C, bf16)},
-          bf16};
+           layer(w5, false, d.C, d.H, d.C, bf16)}};
 }
+
+// Per-thread weight gradients, laid out [out (padded to 16), in_padded] as the backward weights.
+struct Grads {
+  float* w[5];
+};
+
+// Copies the colour-logit gradients of rows [n0, n0 + m) into dc [kTile, Cp] (zeros beyond).
+void colour_grads(const Dims& d, const float* gp, int64_t n0, int m, float* dc) {
+  std::fill(dc, dc + kTile * d.Cp, 0.0f);
+  for (int p = 0; p < m; ++p) std::memcpy(dc + p * d.Cp, gp + (n0 + p) * (1 + d.C) + 1, d.C * 4);
+}
+
+// dg [kTile, Gp] = the geometry part of dcin [kTile, Cinp], plus the density logit's gradient
+// on g[0] (rows below m).
+void geometry_grads(const Dims& d, const float* gp, int64_t n0, int m, const float* dcin,
+                    float* dg) {
+  for (int p = 0; p < kTile; ++p) {
+    float* row = dg + p * d.Gp;
+    std::memcpy(row, dcin + p * d.Cinp, d.G * 4);
+    std::fill(row + d.G, row + d.Gp, 0.0f);
+    if (p < m) row[0] += gp[(n0 + p) * (1 + d.C)];
+  }
+}
+
+// ---- float32 products ----
 
 // One tile's inputs and activations (rows beyond the batch are zeros).
 struct Tile {
@@ -453,52 +234,186 @@ struct Tile {
   alignas(64) float h2[kTile * 128];
   alignas(64) float h3[kTile * 128];
   alignas(64) float c[kTile * 16];
-  alignas(64) bf16 x[kTile * 256];  // bf16 products: rounded inputs, or amx_outer's blocks
 };
 
-// Y = X M for a tile with layer `l`: tile_product in float32, or on the AMX tiles with bf16
-// inputs (X rounded into t.x first).
-void apply(const Weights& w, const Layer& l, const float* x, int ldx, float* y, int ldy, Out out,
-           const float* mask, Tile& t) {
-  if (w.bf16) {
-    rows_to_bf16(x, ldx, l.n_in, t.x, pad32(l.n_in));
-    amx_product(t.x, pad32(l.n_in), l.packed.data(), l.n_out, y, ldy, out, mask);
-  } else {
-    tile_product(x, ldx, l.n_in, l.m.data(), l.n_out, y, ldy, out, mask);
-  }
-}
-
-// dW [pad16(n_rows), width] += dY^T X over the tile (tile_outer, or on the AMX tiles).
-void outer(const Weights& w, const float* dy, int ldd, int n_rows, const float* x, int ldx,
-           int width, float* dw, Tile& t) {
-  if (w.bf16) amx_outer(dy, ldd, pad16(n_rows), x, ldx, width, dw, t.x);
-  else tile_outer(dy, ldd, n_rows, x, ldx, width, dw);
-}
+// A thread's working set: the activations (t) and their gradients (dt).
+struct Fp32Work {
+  Tile t, dt;
+};
 
 // Loads rows [n0, n0 + m) of e and the SH rows of their rays into the tile (zeros beyond),
 // then runs the forward; without `colour` it stops before the last layer (the backward needs
 // the activations, not the colour logits). Keeping the activations for the backward instead
 // of computing them again measured no faster (lego steady step, 1 and 2 threads).
 void forward_tile(const Dims& d, const Weights& w, const float* e, const float* sh,
-                  const int64_t* ri, int64_t n0, int m, Tile& t, bool colour) {
+                  const int64_t* ri, int64_t n0, int m, Fp32Work& k, bool colour) {
+  Tile& t = k.t;
   std::fill(t.e, t.e + kTile * d.Ep, 0.0f);
   std::fill(t.cin, t.cin + kTile * d.Cinp, 0.0f);
   for (int p = 0; p < m; ++p) {
     std::memcpy(t.e + p * d.Ep, e + (n0 + p) * d.E, d.E * 4);
     std::memcpy(t.cin + p * d.Cinp + d.G, sh + ri[n0 + p] * d.S, d.S * 4);
   }
-  apply(w, w.fwd[0], t.e, d.Ep, t.h1, d.H, kRelu, nullptr, t);
-  apply(w, w.fwd[1], t.h1, d.H, t.g, d.Gp, kPlain, nullptr, t);
+  tile_product(t.e, d.Ep, d.E, w.fwd[0].m.data(), d.H, t.h1, d.H, kRelu, nullptr);
+  tile_product(t.h1, d.H, d.H, w.fwd[1].m.data(), d.Gp, t.g, d.Gp, kPlain, nullptr);
   for (int p = 0; p < kTile; ++p) std::memcpy(t.cin + p * d.Cinp, t.g + p * d.Gp, d.G * 4);
-  apply(w, w.fwd[2], t.cin, d.Cinp, t.h2, d.H, kRelu, nullptr, t);
-  apply(w, w.fwd[3], t.h2, d.H, t.h3, d.H, kRelu, nullptr, t);
-  if (colour) apply(w, w.fwd[4], t.h3, d.H, t.c, d.Cp, kPlain, nullptr, t);
+  tile_product(t.cin, d.Cinp, d.G + d.S, w.fwd[2].m.data(), d.H, t.h2, d.H, kRelu, nullptr);
+  tile_product(t.h2, d.H, d.H, w.fwd[3].m.data(), d.H, t.h3, d.H, kRelu, nullptr);
+  if (colour) tile_product(t.h3, d.H, d.H, w.fwd[4].m.data(), d.Cp, t.c, d.Cp, kPlain, nullptr);
+}
+
+// The forward of a tile again, then its backward: grad_e rows into ge, weight gradients
+// summed into a.
+void backward_tile(const Dims& d, const Weights& w, const float* e, const float* sh,
+                   const int64_t* ri, const float* gp, int64_t n0, int m, Fp32Work& k,
+                   const Grads& a, float* ge) {
+  forward_tile(d, w, e, sh, ri, n0, m, k, false);
+  Tile &t = k.t, &dt = k.dt;
+  colour_grads(d, gp, n0, m, dt.c);
+  tile_product(dt.c, d.Cp, d.C, w.bwd[4].m.data(), d.H, dt.h3, d.H, kMask, t.h3);
+  tile_outer(dt.c, d.Cp, d.C, t.h3, d.H, d.H, a.w[4]);
+  tile_product(dt.h3, d.H, d.H, w.bwd[3].m.data(), d.H, dt.h2, d.H, kMask, t.h2);
+  tile_outer(dt.h3, d.H, d.H, t.h2, d.H, d.H, a.w[3]);
+  tile_product(dt.h2, d.H, d.H, w.bwd[2].m.data(), d.Cinp, dt.cin, d.Cinp, kPlain, nullptr);
+  tile_outer(dt.h2, d.H, d.H, t.cin, d.Cinp, d.Cinp, a.w[2]);
+  geometry_grads(d, gp, n0, m, dt.cin, dt.g);
+  tile_product(dt.g, d.Gp, d.G, w.bwd[1].m.data(), d.H, dt.h1, d.H, kMask, t.h1);
+  tile_outer(dt.g, d.Gp, d.G, t.h1, d.H, d.H, a.w[1]);
+  tile_product(dt.h1, d.H, d.H, w.bwd[0].m.data(), d.Ep, dt.e, d.Ep, kPlain, nullptr);
+  tile_outer(dt.h1, d.H, d.H, t.e, d.Ep, d.Ep, a.w[0]);
+  for (int p = 0; p < m; ++p) std::memcpy(ge + (n0 + p) * d.E, dt.e + p * d.Ep, d.E * 4);
+}
+
+void start(Fp32Work&) {}
+void stop(Fp32Work&) {}
+
+// ---- bf16 products on the AMX tiles (amx_bf16.h) ----
+//
+// The inputs of every product are rounded to bf16 and multiplied on the AMX tiles, which sum
+// in float32; outputs, the ReLUs' gates and the weight gradients are float32. Activations are
+// kept as the bf16 rows the next product reads.
+
+#ifdef DRONECAP_AMX
+struct Bf16Work {
+  alignas(64) bf16 e[kTile * 128];    // [kTile, pad32(widths)] bf16 rows
+  alignas(64) bf16 h1[kTile * 128];
+  alignas(64) bf16 cin[kTile * 128];
+  alignas(64) bf16 h2[kTile * 128];
+  alignas(64) bf16 h3[kTile * 128];
+  alignas(64) float g[kTile * 128];   // geometry outputs [kTile, Gp]
+  alignas(64) float c[kTile * 16];    // colour logits [kTile, Cp]
+  alignas(64) float fa[kTile * 128], fb[kTile * 128];  // float32 results and gradients
+  alignas(64) bf16 ba[kTile * 128], bb[kTile * 128];   // the same rounded, for the next product
+  alignas(64) bf16 scratch[kTile * 256];               // amx::outer's blocks
+};
+
+void forward_tile(const Dims& d, const Weights& w, const float* e, const float* sh,
+                  const int64_t* ri, int64_t n0, int m, Bf16Work& t, bool colour) {
+  using amx::pad32;
+  const int h32 = pad32(d.H), cin32 = pad32(d.G + d.S);
+  amx::rows_to_bf16(e + n0 * d.E, d.E, m, d.E, t.e, pad32(d.E));
+  amx::product(t.e, pad32(d.E), w.fwd[0].packed.data(), d.H, t.fa, d.H);
+  amx::finish(t.fa, d.H, d.H, true, nullptr, t.h1);
+  amx::product(t.h1, h32, w.fwd[1].packed.data(), d.Gp, t.g, d.Gp);
+  // cin = [g, SH of the ray] staged in float32 (zeros beyond m)
+  std::fill(t.fb, t.fb + kTile * d.Cinp, 0.0f);
+  for (int p = 0; p < kTile; ++p) std::memcpy(t.fb + p * d.Cinp, t.g + p * d.Gp, d.G * 4);
+  for (int p = 0; p < m; ++p) std::memcpy(t.fb + p * d.Cinp + d.G, sh + ri[n0 + p] * d.S, d.S * 4);
+  amx::rows_to_bf16(t.fb, d.Cinp, kTile, d.G + d.S, t.cin, cin32);
+  amx::product(t.cin, cin32, w.fwd[2].packed.data(), d.H, t.fa, d.H);
+  amx::finish(t.fa, d.H, d.H, true, nullptr, t.h2);
+  amx::product(t.h2, h32, w.fwd[3].packed.data(), d.H, t.fa, d.H);
+  amx::finish(t.fa, d.H, d.H, true, nullptr, t.h3);
+  if (colour) amx::product(t.h3, h32, w.fwd[4].packed.data(), d.Cp, t.c, d.Cp);
+}
+
+void backward_tile(const Dims& d, const Weights& w, const float* e, const float* sh,
+                   const int64_t* ri, const float* gp, int64_t n0, int m, Bf16Work& t,
+                   const Grads& a, float* ge) {
+  using amx::pad32;
+  const int h32 = pad32(d.H);
+  forward_tile(d, w, e, sh, ri, n0, m, t, false);
+  colour_grads(d, gp, n0, m, t.fa);
+  amx::rows_to_bf16(t.fa, d.Cp, kTile, d.C, t.ba, pad32(d.C));
+  amx::outer(t.fa, d.Cp, d.Cp, t.h3, d.H, a.w[4], t.scratch);
+  amx::product(t.ba, pad32(d.C), w.bwd[4].packed.data(), d.H, t.fb, d.H);  // dh3
+  amx::finish(t.fb, d.H, d.H, false, t.h3, t.bb);
+  amx::outer(t.fb, d.H, d.H, t.h2, d.H, a.w[3], t.scratch);
+  amx::product(t.bb, h32, w.bwd[3].packed.data(), d.H, t.fa, d.H);  // dh2
+  amx::finish(t.fa, d.H, d.H, false, t.h2, t.ba);
+  amx::outer(t.fa, d.H, d.H, t.cin, d.Cinp, a.w[2], t.scratch);
+  amx::product(t.ba, h32, w.bwd[2].packed.data(), d.Cinp, t.fb, d.Cinp);  // dcin
+  geometry_grads(d, gp, n0, m, t.fb, t.fa);
+  amx::rows_to_bf16(t.fa, d.Gp, kTile, d.G, t.ba, pad32(d.G));
+  amx::outer(t.fa, d.Gp, d.Gp, t.h1, d.H, a.w[1], t.scratch);
+  amx::product(t.ba, pad32(d.G), w.bwd[1].packed.data(), d.H, t.fb, d.H);  // dh1
+  amx::finish(t.fb, d.H, d.H, false, t.h1, t.bb);
+  amx::outer(t.fb, d.H, d.H, t.e, d.Ep, a.w[0], t.scratch);
+  amx::product(t.bb, h32, w.bwd[0].packed.data(), d.Ep, t.fa, d.Ep);  // de
+  for (int p = 0; p < m; ++p) std::memcpy(ge + (n0 + p) * d.E, t.fa + p * d.Ep, d.E * 4);
+}
+
+void start(Bf16Work&) { amx::begin(); }
+void stop(Bf16Work&) { amx::end(); }
+#endif
+
+// The forward of all N rows, tile by tile on each thread: out [N, 1 + C].
+template <class Work>
+void forward_rows(const Dims& d, const Weights& w, const float* e, const float* sh,
+                  const int64_t* ri, int64_t n, float* out) {
+  const int64_t tiles = (n + kTile - 1) / kTile;
+#pragma omp parallel num_threads(at::get_num_threads())
+  {
+    std::unique_ptr<Work> k(new Work);
+    start(*k);
+#pragma omp for schedule(static)
+    for (int64_t b = 0; b < tiles; ++b) {
+      const int64_t n0 = b * kTile;
+      const int m = int(std::min<int64_t>(kTile, n - n0));
+      forward_tile(d, w, e, sh, ri, n0, m, *k, true);
+      const auto& t = [&]() -> const auto& {
+        if constexpr (std::is_same_v<Work, Fp32Work>) return k->t;
+        else return *k;
+      }();
+      for (int p = 0; p < m; ++p) {
+        float* o = out + (n0 + p) * (1 + d.C);
+        o[0] = t.g[p * d.Gp];
+        std::memcpy(o + 1, t.c + p * d.Cp, d.C * 4);
+      }
+    }
+    stop(*k);
+  }
+}
+
+// The backward of all N rows: grad_e rows into ge, each thread's weight gradients into its
+// slice of acc (per_thread floats each, the five matrices one after the other).
+template <class Work>
+void backward_rows(const Dims& d, const Weights& w, const float* e, const float* sh,
+                   const int64_t* ri, const float* gp, int64_t n, float* ge, float* acc,
+                   size_t per_thread) {
+  const int64_t tiles = (n + kTile - 1) / kTile;
+  const size_t sizes[5] = {size_t(d.H) * d.Ep, size_t(d.Gp) * d.H, size_t(d.H) * d.Cinp,
+                           size_t(d.H) * d.H, size_t(d.Cp) * d.H};
+#pragma omp parallel num_threads(at::get_num_threads())
+  {
+    std::unique_ptr<Work> k(new Work);
+    Grads a;
+    a.w[0] = acc + size_t(omp_get_thread_num()) * per_thread;
+    for (int i = 1; i < 5; ++i) a.w[i] = a.w[i - 1] + sizes[i - 1];
+    start(*k);
+#pragma omp for schedule(static)
+    for (int64_t b = 0; b < tiles; ++b) {
+      const int64_t n0 = b * kTile;
+      backward_tile(d, w, e, sh, ri, gp, n0, int(std::min<int64_t>(kTile, n - n0)), *k, a, ge);
+    }
+    stop(*k);
+  }
 }
 
 Dims dims_of(const torch::Tensor& e, const torch::Tensor& sh, const torch::Tensor& ri,
              const torch::Tensor& w1, const torch::Tensor& w2, const torch::Tensor& w3,
              const torch::Tensor& w4, const torch::Tensor& w5, bool bf16) {
-  TORCH_CHECK(!bf16 || amx_available(), "bf16 products need AMX-BF16 tiles, which this CPU or process lacks");
+  TORCH_CHECK(!bf16 || amx::available(), "bf16 products need AMX-BF16 tiles, which this CPU or process lacks");
   for (const auto* t : {&e, &sh, &w1, &w2, &w3, &w4, &w5}) {
     TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == torch::kFloat32 && t->dim() == 2,
                 "float32 CPU matrices expected");
@@ -532,25 +447,13 @@ torch::Tensor mlp_forward(torch::Tensor e, torch::Tensor sh, torch::Tensor ri, t
   auto out = torch::empty({n, 1 + d.C}, e.options());
   const float *ep = e.data_ptr<float>(), *sp = sh.data_ptr<float>();
   const int64_t* rp = ri.data_ptr<int64_t>();
-  float* op = out.data_ptr<float>();
-  const int64_t tiles = (n + kTile - 1) / kTile;
-#pragma omp parallel num_threads(at::get_num_threads())
-  {
-    std::unique_ptr<Tile> t(new Tile);
-    if (bf16) amx_begin();
-#pragma omp for schedule(static)
-    for (int64_t b = 0; b < tiles; ++b) {
-      const int64_t n0 = b * kTile;
-      const int m = int(std::min<int64_t>(kTile, n - n0));
-      forward_tile(d, w, ep, sp, rp, n0, m, *t, true);
-      for (int p = 0; p < m; ++p) {
-        float* o = op + (n0 + p) * (1 + d.C);
-        o[0] = t->g[p * d.Gp];
-        std::memcpy(o + 1, t->c + p * d.Cp, d.C * 4);
-      }
-    }
-    if (bf16) amx_end();
+#ifdef DRONECAP_AMX
+  if (bf16) {
+    forward_rows<Bf16Work>(d, w, ep, sp, rp, n, out.data_ptr<float>());
+    return out;
   }
+#endif
+  forward_rows<Fp32Work>(d, w, ep, sp, rp, n, out.data_ptr<float>());
   return out;
 }
 
@@ -576,42 +479,11 @@ std::vector<torch::Tensor> mlp_backward(torch::Tensor grad, torch::Tensor e, tor
   const float *ep = e.data_ptr<float>(), *sp = sh.data_ptr<float>(), *gp = grad.data_ptr<float>();
   const int64_t* rp = ri.data_ptr<int64_t>();
   float* gep = grad_e.data_ptr<float>();
-  const int64_t tiles = (n + kTile - 1) / kTile;
-#pragma omp parallel num_threads(nt)
-  {
-    std::unique_ptr<Tile> t(new Tile), dt(new Tile);  // activations and their gradients
-    float* a = acc.data() + size_t(omp_get_thread_num()) * all;
-    float *a1 = a, *a2 = a1 + s1, *a3 = a2 + s2, *a4 = a3 + s3, *a5 = a4 + s4;
-    if (bf16) amx_begin();
-#pragma omp for schedule(static)
-    for (int64_t b = 0; b < tiles; ++b) {
-      const int64_t n0 = b * kTile;
-      const int m = int(std::min<int64_t>(kTile, n - n0));
-      forward_tile(d, w, ep, sp, rp, n0, m, *t, false);
-      // dc: colour-logit gradients (padded to Cp); rows beyond m are zero
-      std::fill(dt->c, dt->c + kTile * d.Cp, 0.0f);
-      for (int p = 0; p < m; ++p) std::memcpy(dt->c + p * d.Cp, gp + (n0 + p) * (1 + d.C) + 1, d.C * 4);
-      apply(w, w.bwd[4], dt->c, d.Cp, dt->h3, d.H, kMask, t->h3, *dt);
-      outer(w, dt->c, d.Cp, d.C, t->h3, d.H, d.H, a5, *dt);
-      apply(w, w.bwd[3], dt->h3, d.H, dt->h2, d.H, kMask, t->h2, *dt);
-      outer(w, dt->h3, d.H, d.H, t->h2, d.H, d.H, a4, *dt);
-      apply(w, w.bwd[2], dt->h2, d.H, dt->cin, d.Cinp, kPlain, nullptr, *dt);
-      outer(w, dt->h2, d.H, d.H, t->cin, d.Cinp, d.Cinp, a3, *dt);
-      // dg: the geometry part of dcin, plus the density logit's gradient on g[0]
-      for (int p = 0; p < kTile; ++p) {
-        float* dg = dt->g + p * d.Gp;
-        std::memcpy(dg, dt->cin + p * d.Cinp, d.G * 4);
-        std::fill(dg + d.G, dg + d.Gp, 0.0f);
-        if (p < m) dg[0] += gp[(n0 + p) * (1 + d.C)];
-      }
-      apply(w, w.bwd[1], dt->g, d.Gp, dt->h1, d.H, kMask, t->h1, *dt);
-      outer(w, dt->g, d.Gp, d.G, t->h1, d.H, d.H, a2, *dt);
-      apply(w, w.bwd[0], dt->h1, d.H, dt->e, d.Ep, kPlain, nullptr, *dt);
-      outer(w, dt->h1, d.H, d.H, t->e, d.Ep, d.Ep, a1, *dt);
-      for (int p = 0; p < m; ++p) std::memcpy(gep + (n0 + p) * d.E, dt->e + p * d.Ep, d.E * 4);
-    }
-    if (bf16) amx_end();
-  }
+#ifdef DRONECAP_AMX
+  if (bf16) backward_rows<Bf16Work>(d, w, ep, sp, rp, gp, n, gep, acc.data(), all);
+  else
+#endif
+    backward_rows<Fp32Work>(d, w, ep, sp, rp, gp, n, gep, acc.data(), all);
   // sum the threads' gradients and drop the padding
   for (int k = 1; k < nt; ++k)
     for (size_t i = 0; i < all; ++i) acc[i] += acc[size_t(k) * all + i];
@@ -633,7 +505,7 @@ std::vector<torch::Tensor> mlp_backward(torch::Tensor grad, torch::Tensor e, tor
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &mlp_forward, "fused field MLPs: (e, sh, ri, w1..w5) -> [N, 1 + C] logits",
         py::call_guard<py::gil_scoped_release>());
-  m.def("amx", &amx_available, "whether bf16 products can run on this CPU's AMX tiles");
+  m.def("amx", &amx::available, "whether bf16 products can run on this CPU's AMX tiles");
   m.def("backward", &mlp_backward, "fused field MLPs' backward: -> grad_e, grad_w1..grad_w5",
         py::call_guard<py::gil_scoped_release>());
 }
