@@ -62,9 +62,10 @@ def draw_rays(
     u = torch.randint(w, (n_rays,), generator=g, device=dev)
     v = torch.randint(h, (n_rays,), generator=g, device=dev)
     origins, dirs = frame_rays(poses[which], cameras, camera_index[which], u, v)
-    rgb = images[which, v, u].float() / 255.0
+    pixel = (which * h + v) * w + u  # one flat gather instead of indexing [which, v, u]
+    rgb = images.reshape(-1, c)[pixel].float() / 255.0
     if alpha is not None:
-        a = (alpha[which, v, u].float() / 255.0).unsqueeze(-1)
+        a = (alpha.reshape(-1)[pixel].float() / 255.0).unsqueeze(-1)
         bg = torch.rand((n_rays, c), generator=g, device=dev)
         target = rgb * a + bg * (1.0 - a)
     else:

@@ -193,3 +193,17 @@ def test_the_fused_pre_pass_keeps_the_samples_the_torch_one_keeps():
             assert kept == s.n  # density exp(0) = 1 per unit over ~2 units of ray: all kept
         if scale == 30.0:
             assert kept < s.n
+
+
+@pytest.mark.skipif(kernel("hashgrid", "auto") is None, reason="C++ hash-grid kernel unavailable")
+def test_the_fused_pre_pass_refuses_samples_out_of_ray_order():
+    o, d = _rays(4)
+    tn, tf, _ = ray_aabb(o, d, BOX)
+    s = march(o, d, tn, tf, 0.05, None, BOX, 1000)
+    f = _field()
+    for bad in (s.ray_indices.flip(0), s.ray_indices + 4):  # decreasing; past the rays
+        with pytest.raises(RuntimeError, match="non-decreasing indices of the rays"):
+            f.visible_samples(o, d, (s.t_starts, s.t_ends, bad), 1e-4)
+    empty = torch.zeros(0)
+    keep, enc, unit = f.visible_samples(o, d, (empty, empty, empty.long()), 1e-4)
+    assert keep.numel() == 0 and enc.shape == (0, f.encoding.out_dim) and unit.shape == (0, 3)
