@@ -10,7 +10,7 @@ median over rounds of the median over windows):
 
 - this commit;
 - this commit with the MLPs multiplying in fp32 (``mlp_dtype=fp32``; the default "auto"
-  multiplies in bf16 on a CPU with native bf16 products);
+  multiplies in bf16 on a CPU with AMX-BF16 tiles);
 - this commit with the hash-grid kernels built without their AVX2/AVX-512 paths
   (``DRONECAP_NO_SIMD=1``);
 - earlier code (``--previous COMMIT``, default: the commit before this session's speed work),
