@@ -127,8 +127,12 @@ def test_density_alone_is_the_geometry_pass_density_in_every_product_dtype():
     for f in (*_twins(), *_twins(precision="fp16")[:1]):
         sig, geo = f.geometry(pts)
         assert geo.shape[1] > 1
-        # a one-column product may round differently from the 16-column one by a few ulps
-        assert torch.allclose(f.density(pts), sig, rtol=1e-5, atol=0)
+        # a one-column product may round differently from the 16-column one: by a few float32
+        # ulps, or to the neighbouring bf16 value of the raw density (2^-8 relative) in bf16
+        if f.product_dtype == torch.float32:
+            assert torch.allclose(f.density(pts), sig, rtol=1e-5, atol=0)
+        else:
+            assert torch.allclose(f.density(pts).log(), sig.log(), rtol=2**-7, atol=2**-7)
         assert torch.equal(f.density_from_encoding(f.encode(pts)), f.density(pts))
 
 
