@@ -173,13 +173,14 @@ class Field(nn.Module):
         hash encoding [N, levels * features] (:meth:`encode`), without autograd.
 
         With fp32 storage, a density MLP of one hidden layer and the C++ kernel, encoding and
-        MLP run fused in float32 products (:meth:`HashGrid.fused_density`; the same values up to
-        float32 summation order), else one after the other.
+        MLP run fused (:meth:`HashGrid.fused_density`; the same values up to float32 summation
+        order, or bf16 products on the AMX tiles under ``mlp_dtype`` bf16), else one after the
+        other.
         """
         unit = self.unit(points)
         layers = self._density_rows()
         if layers is not None:
-            fused = self.encoding.fused_density(unit, *layers, keep_encoded)
+            fused = self.encoding.fused_density(unit, *layers, keep_encoded, self._amx_bf16())
             if fused is not None:
                 return trunc_exp(fused[0]), fused[1]
         encoded = self.encoding(unit)
@@ -204,14 +205,19 @@ class Field(nn.Module):
             return None
         box = torch.stack([self.aabb_min, self.aabb_size])  # as :meth:`unit` maps
         return self.encoding.fused_visible(
-            (origins, dirs, box), samples, *layers, MAX_LOG_DENSITY, min_transmittance
+            (origins, dirs, box),
+            samples,
+            *layers,
+            MAX_LOG_DENSITY,
+            min_transmittance,
+            self._amx_bf16(),
         )
 
     def _density_rows(self) -> tuple[Tensor, Tensor] | None:
         """(hidden-layer weight, the density's output row) of a density MLP of one hidden
-        layer, which the fused C++ queries take; else None. The fused queries multiply in
-        float32 under bf16 products too: they only rank grid cells and samples (occupancy
-        updates, compaction), and bf16 would make them no faster."""
+        layer, which the fused C++ queries take; else None. Under bf16 products they multiply
+        the hidden layer on the AMX tiles too (bf16 inputs, float32 sums; the ReLU and the
+        density row in float32), else in float32."""
         layers = [m for m in self.density_mlp if isinstance(m, nn.Linear)]
         if len(layers) != 2:
             return None

@@ -193,7 +193,7 @@ class HashGrid(torch.nn.Module):
 
     @torch.no_grad()
     def fused_density(
-        self, x: Tensor, w1: Tensor, w2: Tensor, keep_encoded: bool
+        self, x: Tensor, w1: Tensor, w2: Tensor, keep_encoded: bool, bf16: bool = False
     ) -> tuple[Tensor, Tensor | None] | None:
         """The encoding of ``x`` [N, 3] (unit cube) run through a one-hidden-layer ReLU MLP in
         one C++ pass, without autograd; None when the C++ kernel is not in use or the table is
@@ -203,6 +203,8 @@ class HashGrid(torch.nn.Module):
             w1: [hidden, levels * features] the hidden layer's weight (bias-free).
             w2: [hidden] the output row wanted (the density's, before its activation).
             keep_encoded: also return the encoding [N, levels * features] (as :meth:`forward`).
+            bf16: the hidden layer multiplies bf16-rounded encodings on the AMX tiles (float32
+                sums, ReLU and output row) where the kernel has them, else in float32.
 
         Returns:
             (raw [N] = w2 . relu(w1 @ encoding), encoding or None), float32. Blocks of points
@@ -214,7 +216,7 @@ class HashGrid(torch.nn.Module):
             return None
         raw, encoded = load_extension().density(
             x.float().contiguous(), *self._table_args(), w1.detach().float(), w2.detach().float(),
-            keep_encoded,
+            keep_encoded, bf16,
         )  # fmt: skip
         return raw, (encoded if keep_encoded else None)
 
@@ -222,6 +224,7 @@ class HashGrid(torch.nn.Module):
     def fused_visible(
         self, rays: tuple[Tensor, Tensor, Tensor], samples: tuple[Tensor, Tensor, Tensor],
         w1: Tensor, w2: Tensor, max_log_density: float, min_transmittance: float,
+        bf16: bool = False,
     ) -> tuple[Tensor, Tensor, Tensor] | None:  # fmt: skip
         """Compaction's pre-pass in one C++ call (None as :meth:`fused_density`): the density
         exp(clamp(w2 . relu(w1 @ encoding), +-max_log_density)) of packed samples at their
@@ -234,7 +237,7 @@ class HashGrid(torch.nn.Module):
             rays: (origins [R, 3], directions [R, 3], box [2, 3]: the min corner and size of the
                 box whose unit cube is encoded), scene units.
             samples: (t_starts [S], t_ends [S] scene units, ray_indices [S] int64 non-decreasing).
-            w1, w2: as in :meth:`fused_density`.
+            w1, w2, bf16: as in :meth:`fused_density`.
 
         Returns:
             (indices [K] int64 of the kept samples, in order; their encodings [K, levels *
@@ -246,7 +249,7 @@ class HashGrid(torch.nn.Module):
         t0, t1, ri = samples
         keep, encoded, unit = load_extension().visible(
             origins, dirs, t0.float(), t1.float(), ri.long(), box, *self._table_args(),
-            w1.detach().float(), w2.detach().float(), max_log_density, min_transmittance,
+            w1.detach().float(), w2.detach().float(), max_log_density, min_transmittance, bf16,
         )  # fmt: skip
         return keep, encoded, unit
 

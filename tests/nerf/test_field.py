@@ -3,10 +3,12 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from dronecap.nerf.config import preset
 from dronecap.nerf.field import Field, trunc_exp
+from dronecap.nerf.mlp_kernel import amx
 from dronecap.nerf.resolve import auto_n_max
 from dronecap.nerf.sh import sh_encode
 
@@ -119,6 +121,24 @@ def test_bf16_products_keep_huge_and_zero_densities_finite():
     with torch.no_grad():
         fast.density_mlp[-1].weight.zero_()
     assert torch.equal(fast.density(torch.rand(5, 3)), torch.ones(5))  # exp(0)
+
+
+@pytest.mark.skipif(not amx(), reason="bf16 products need AMX-BF16 tiles (Intel Xeon 4th gen+)")
+def test_fused_density_query_in_bf16_products_follows_the_bf16_layers():
+    # under bf16 products the fused query's hidden layer multiplies on the AMX tiles
+    g = torch.Generator().manual_seed(4)
+    cfg = preset("scene-sized").replace(n_max=223, mlp_dtype="bf16")
+    f = Field(cfg, 3, AABB)
+    with torch.no_grad():
+        f.encoding.table.uniform_(-1, 1, generator=g)
+        f.density_mlp[-1].weight.mul_(4)  # log-densities of a few units
+        pts = torch.rand(1003, 3, generator=g) * 2 - 1
+        sig, enc = f.density_and_encoding(pts)
+        want = f.density_from_encoding(enc)  # torch's bf16 layers (bf16 activations)
+        f.product_dtype = torch.float32
+        exact, _ = f.density_and_encoding(pts)
+    assert torch.allclose(sig.log(), want.log(), rtol=2**-6, atol=2**-6)
+    assert not torch.equal(sig, exact) and torch.allclose(sig.log(), exact.log(), atol=0.05)
 
 
 def test_density_alone_is_the_geometry_pass_density_in_every_product_dtype():

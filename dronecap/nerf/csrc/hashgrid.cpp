@@ -40,6 +40,8 @@
 #include <memory>
 #include <vector>
 
+#include "amx_bf16.h"
+
 namespace {
 
 constexpr uint32_t kPrime1 = 2654435761u;
@@ -591,20 +593,48 @@ int64_t density_rows64(const float* e, int64_t n, int64_t in_dim, const float* w
 
 }  // namespace
 
+#ifdef DRONECAP_AMX
+// density_rows on the AMX tiles: the rows of e rounded to bf16 and the hidden layer summed in
+// float32 (amx_bf16.h; w1 packed by amx::pack from W1 transposed), its ReLU and the output row
+// in float32. hidden a multiple of 16 and in_dim at most 128.
+void density_rows_amx(const float* e, int64_t n, int64_t in_dim, const amx::bf16* w1,
+                      const float* w2, int64_t hidden, float* out) {
+  alignas(64) amx::bf16 x[amx::kRows * 128];
+  alignas(64) float y[amx::kRows * 128];
+  const int kp = amx::pad32(int(in_dim)), h = int(hidden);
+  for (int64_t r0 = 0; r0 < n; r0 += amx::kRows) {
+    const int rows = int(std::min<int64_t>(amx::kRows, n - r0));
+    amx::rows_to_bf16(e + r0 * in_dim, int(in_dim), rows, int(in_dim), x, kp);
+    amx::product(x, kp, w1, h, y, h);
+    for (int p = 0; p < rows; ++p) {
+      __m512 acc = _mm512_setzero_ps();
+      for (int j = 0; j < h; j += 16) {
+        const __m512 v = _mm512_max_ps(_mm512_loadu_ps(y + p * h + j), _mm512_setzero_ps());
+        acc = _mm512_fmadd_ps(v, _mm512_loadu_ps(w2 + j), acc);
+      }
+      out[r0 + p] = _mm512_reduce_add_ps(acc);
+    }
+  }
+}
+#endif
+
 // The density MLP's first output (before its activation) at points, fused with their hash
 // encoding: a block of points is encoded into a buffer that stays in cache and goes through the
 // MLP (one hidden layer of ReLUs, bias-free) before the next block, so the [N, hidden]
 // activations never reach memory. w1 [hidden, L*F] and w2 [hidden] (the last layer's first row).
 // Checked and laid out once (the pre-pass queries in rounds), then run on any rows of points.
+// With `bf16` the hidden layer multiplies on the AMX tiles where they can run it (the build has
+// them, hidden a multiple of 16 up to 128, L*F at most 128), else in float32.
 struct DensityQuery {
   std::vector<Level> levels;
   int64_t nf, out_dim, hidden;
   torch::Tensor table, w1t, w2c;  // kept alive for the pointers below
   const float *tp, *w1p, *w2p;
+  std::vector<amx::bf16> w1_tiles;  // W1 transposed, packed for the AMX tiles (bf16 only)
 
   DensityQuery(const torch::Tensor& table_, const std::vector<int64_t>& resolutions,
                const std::vector<int64_t>& offsets, int64_t log2_hashmap, const torch::Tensor& w1,
-               const torch::Tensor& w2)
+               const torch::Tensor& w2, bool bf16)
       : levels(table_levels(table_, resolutions, offsets, log2_hashmap)),
         nf(table_.size(1)),
         out_dim(int64_t(levels.size()) * nf),
@@ -618,6 +648,11 @@ struct DensityQuery {
     w1t = w1.t().contiguous();
     w2c = w2.reshape({hidden}).contiguous();
     tp = table.data_ptr<float>(), w1p = w1t.data_ptr<float>(), w2p = w2c.data_ptr<float>();
+#ifdef DRONECAP_AMX
+    if (bf16 && amx::available() && hidden % 16 == 0 && hidden <= 128 && out_dim <= 128)
+      w1_tiles = amx::pack(std::vector<float>(w1p, w1p + out_dim * hidden), int(out_dim),
+                           int(hidden));
+#endif
   }
 
   // Raw densities rp [n] of the points xp [n, 3] and, when `ep` is not null, their encodings
@@ -627,6 +662,9 @@ struct DensityQuery {
 #pragma omp parallel num_threads(std::min<int64_t>(at::get_num_threads(), blocks))
     {
       std::vector<float> scratch(ep ? 0 : kFuseBlock * out_dim);
+#ifdef DRONECAP_AMX
+      if (!w1_tiles.empty()) amx::begin();
+#endif
 #pragma omp for schedule(static)
       for (int64_t b = 0; b < blocks; ++b) {
         const int64_t n0 = b * kFuseBlock, m = std::min(n, n0 + kFuseBlock) - n0;
@@ -634,12 +672,21 @@ struct DensityQuery {
         for (int64_t l = 0; l < nl; ++l) {
           DISPATCH_F(nf, forward_range, xp + 3 * n0, tp, e, 0, m, levels[l], l, out_dim, nf);
         }
+#ifdef DRONECAP_AMX
+        if (!w1_tiles.empty()) {
+          density_rows_amx(e, m, out_dim, w1_tiles.data(), w2p, hidden, rp + n0);
+          continue;
+        }
+#endif
         int64_t done = 0;
 #if defined(HG_AVX512) || defined(HG_AVX2)
         if (hidden == 64) done = density_rows64(e, m, out_dim, w1p, w2p, rp + n0);
 #endif
         density_rows(e + done * out_dim, m - done, out_dim, w1p, w2p, hidden, rp + n0 + done);
       }
+#ifdef DRONECAP_AMX
+      if (!w1_tiles.empty()) amx::end();
+#endif
     }
   }
 };
@@ -648,12 +695,13 @@ struct DensityQuery {
 std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
                                            std::vector<int64_t> resolutions,
                                            std::vector<int64_t> offsets, int64_t log2_hashmap,
-                                           torch::Tensor w1, torch::Tensor w2, bool keep_encoded) {
+                                           torch::Tensor w1, torch::Tensor w2, bool keep_encoded,
+                                           bool bf16) {
   const int64_t n = x.size(0), out_dim = int64_t(resolutions.size()) * table.size(1);
   auto raw = torch::empty({n}, x.options());
   auto encoded = torch::empty({keep_encoded ? n : 0, out_dim}, x.options());
   checked_levels(x, table, resolutions, offsets, log2_hashmap);
-  const DensityQuery query(table, resolutions, offsets, log2_hashmap, w1, w2);
+  const DensityQuery query(table, resolutions, offsets, log2_hashmap, w1, w2, bf16);
   query(x.data_ptr<float>(), n, raw.data_ptr<float>(),
         keep_encoded ? encoded.data_ptr<float>() : nullptr);
   return {raw, encoded};
@@ -682,7 +730,8 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
                                            torch::Tensor table, std::vector<int64_t> resolutions,
                                            std::vector<int64_t> offsets, int64_t log2_hashmap,
                                            torch::Tensor w1, torch::Tensor w2,
-                                           double max_log_density, double min_transmittance) {
+                                           double max_log_density, double min_transmittance,
+                                           bool bf16) {
   const int64_t n = t_starts.numel(), out_dim = int64_t(resolutions.size()) * table.size(1);
   for (const auto* t : {&origins, &dirs, &t_starts, &t_ends, &box})
     TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == torch::kFloat32,
@@ -715,7 +764,7 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
   const float lim = float(max_log_density);
   // transmittance exp(-before) > min_transmittance, as a bound on the thickness (no exp)
   const double most = min_transmittance > 0 ? -std::log(min_transmittance) : INFINITY;
-  const DensityQuery query(table, resolutions, offsets, log2_hashmap, w1, w2);
+  const DensityQuery query(table, resolutions, offsets, log2_hashmap, w1, w2, bf16);
   // The queried samples' unit-cube midpoints and encodings, round after round (at most n rows),
   // and each sample's row there; kept per calling thread from call to call, so that their
   // pages are not faulted in anew.
@@ -781,12 +830,14 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &hash_forward, "hash encoding forward: (x [N,3], table [R,F], ...) -> [N, L*F]",
         py::call_guard<py::gil_scoped_release>());
   m.def("density", &density_forward,
-        "density MLP's first output fused with the encoding: (x, table, ..., w1, w2, keep) -> "
+        "density MLP's first output fused with the encoding: (x, table, ..., w1, w2, keep, bf16) "
+        "-> "
         "(raw [N], encoded [N, L*F] or empty)",
         py::call_guard<py::gil_scoped_release>());
   m.def("visible", &visible_forward,
         "compaction's pre-pass: (origins, dirs, t_starts, t_ends, ray_indices, box, table, ..., "
-        "w1, w2, max_log_density, min_transmittance) -> (kept indices, encodings, unit points)",
+        "w1, w2, max_log_density, min_transmittance, bf16) -> (kept indices, encodings, unit "
+        "points)",
         py::call_guard<py::gil_scoped_release>());
   m.def("backward", &hash_backward, "hash encoding backward: scatter-add of grad_out into the table",
         py::call_guard<py::gil_scoped_release>());
