@@ -153,13 +153,15 @@ void tile_outer(const float* dy, int ldd, int n_rows, const float* x, int ldx, i
 }
 
 // A [rows, cols] float32 matrix copied into [rows_to, cols_to] zero-padded storage, optionally
-// transposed first.
+// transposed first (plain loops over its strides: no torch op per weight and call).
 std::vector<float> padded(const torch::Tensor& w, bool transpose, int rows_to, int cols_to) {
-  const auto src = (transpose ? w.t() : w).contiguous();
-  const int r = int(src.size(0)), c = int(src.size(1));
+  const int64_t s0 = w.stride(0), s1 = w.stride(1);
+  const int r = int(w.size(transpose ? 1 : 0)), c = int(w.size(transpose ? 0 : 1));
+  const int64_t sr = transpose ? s1 : s0, sc = transpose ? s0 : s1;  // strides of out's rows, cols
   std::vector<float> out(size_t(rows_to) * cols_to, 0.0f);
-  const float* s = src.data_ptr<float>();
-  for (int i = 0; i < r; ++i) std::memcpy(out.data() + size_t(i) * cols_to, s + size_t(i) * c, c * 4);
+  const float* s = w.data_ptr<float>();
+  for (int i = 0; i < r; ++i)
+    for (int j = 0; j < c; ++j) out[size_t(i) * cols_to + j] = s[i * sr + j * sc];
   return out;
 }
 
