@@ -829,6 +829,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // the GIL is released while a kernel runs: another Python thread can work meanwhile
   m.def("forward", &hash_forward, "hash encoding forward: (x [N,3], table [R,F], ...) -> [N, L*F]",
         py::call_guard<py::gil_scoped_release>());
+  m.def("amx", &amx::available, "whether the density queries can multiply on AMX tiles");
   m.def("density", &density_forward,
         "density MLP's first output fused with the encoding: (x, table, ..., w1, w2, keep, bf16) "
         "-> "
