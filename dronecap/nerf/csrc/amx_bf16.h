@@ -95,8 +95,35 @@ inline void rows_to_bf16(const float* x, int ldx, int rows, int n, bf16* o, int 
     }
 }
 
+// NB result tiles 0..NB-1 += (the input block in tile 4) (NB weight blocks at b, 512 apart,
+// loaded into tiles 6 and 7 in turn). Tile numbers are immediates, hence the unrolled steps.
+template <int NB>
+inline void sum_blocks(const bf16* b) {
+  _tile_loadd(6, b, 64);
+  _tile_dpbf16ps(0, 4, 6);
+  if (NB > 1) { _tile_loadd(7, b + 512, 64); _tile_dpbf16ps(1, 4, 7); }
+  if (NB > 2) { _tile_loadd(6, b + 1024, 64); _tile_dpbf16ps(2, 4, 6); }
+  if (NB > 3) { _tile_loadd(7, b + 1536, 64); _tile_dpbf16ps(3, 4, 7); }
+}
+
+// Result tiles 0..NB-1 loaded from / stored to C [16, NB x 16] floats, row stride ldc.
+template <int NB>
+inline void load_results(const float* c, int ldc) {
+  _tile_loadd(0, c, ldc * 4);
+  if (NB > 1) _tile_loadd(1, c + 16, ldc * 4);
+  if (NB > 2) _tile_loadd(2, c + 32, ldc * 4);
+  if (NB > 3) _tile_loadd(3, c + 48, ldc * 4);
+}
+template <int NB>
+inline void store_results(float* c, int ldc) {
+  _tile_stored(0, c, ldc * 4);
+  if (NB > 1) _tile_stored(1, c + 16, ldc * 4);
+  if (NB > 2) _tile_stored(2, c + 32, ldc * 4);
+  if (NB > 3) _tile_stored(3, c + 48, ldc * 4);
+}
+
 // Y[16 rows, NB x 16 columns from block nb0] = X[16, kp] M for one 16-row group: results in
-// tiles 0..3, the input block in 4, weight blocks in 6 and 7 (tile numbers are immediates).
+// tiles 0..3, the input block in 4, weight blocks in 6 and 7.
 template <int NB>
 inline void rows16(const bf16* x, int kp, const bf16* m, int nbt, int nb0, float* y, int ldy) {
   _tile_zero(0);
@@ -105,17 +132,9 @@ inline void rows16(const bf16* x, int kp, const bf16* m, int nbt, int nb0, float
   if (NB > 3) _tile_zero(3);
   for (int kc = 0; kc < kp / 32; ++kc) {
     _tile_loadd(4, x + kc * 32, kp * 2);
-    const bf16* b = m + (size_t(kc) * nbt + nb0) * 512;
-    _tile_loadd(6, b, 64);
-    _tile_dpbf16ps(0, 4, 6);
-    if (NB > 1) { _tile_loadd(7, b + 512, 64); _tile_dpbf16ps(1, 4, 7); }
-    if (NB > 2) { _tile_loadd(6, b + 1024, 64); _tile_dpbf16ps(2, 4, 6); }
-    if (NB > 3) { _tile_loadd(7, b + 1536, 64); _tile_dpbf16ps(3, 4, 7); }
+    sum_blocks<NB>(m + (size_t(kc) * nbt + nb0) * 512);
   }
-  _tile_stored(0, y, ldy * 4);
-  if (NB > 1) _tile_stored(1, y + 16, ldy * 4);
-  if (NB > 2) _tile_stored(2, y + 32, ldy * 4);
-  if (NB > 3) _tile_stored(3, y + 48, ldy * 4);
+  store_results<NB>(y, ldy);
 }
 
 // The same for both 16-row groups at once (NB = 1 or 2 column blocks; results in tiles
@@ -218,19 +237,9 @@ inline void transpose16(const float* src, int lds, __m512 out[16]) {
 // apart): NB result tiles in flight, so that their loads, sums and stores overlap.
 template <int NB>
 inline void sum_into(const bf16* b, float* c, int ldc) {
-  _tile_loadd(0, c, ldc * 4);
-  if (NB > 1) _tile_loadd(1, c + 16, ldc * 4);
-  if (NB > 2) _tile_loadd(2, c + 32, ldc * 4);
-  if (NB > 3) _tile_loadd(3, c + 48, ldc * 4);
-  _tile_loadd(6, b, 64);
-  _tile_dpbf16ps(0, 4, 6);
-  if (NB > 1) { _tile_loadd(7, b + 512, 64); _tile_dpbf16ps(1, 4, 7); }
-  if (NB > 2) { _tile_loadd(6, b + 1024, 64); _tile_dpbf16ps(2, 4, 6); }
-  if (NB > 3) { _tile_loadd(7, b + 1536, 64); _tile_dpbf16ps(3, 4, 7); }
-  _tile_stored(0, c, ldc * 4);
-  if (NB > 1) _tile_stored(1, c + 16, ldc * 4);
-  if (NB > 2) _tile_stored(2, c + 32, ldc * 4);
-  if (NB > 3) _tile_stored(3, c + 48, ldc * 4);
+  load_results<NB>(c, ldc);
+  sum_blocks<NB>(b);
+  store_results<NB>(c, ldc);
 }
 
 // A weight-gradient sum over one tile: dW [n_rows, width] += dY^T X over its kRows samples, with

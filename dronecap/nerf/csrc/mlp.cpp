@@ -329,29 +329,34 @@ void forward_tile(const Dims& d, const Weights& w, const float* e, const float* 
   if (colour) amx::product(t.h3, h32, w.fwd[4].packed.data(), d.Cp, t.c, d.Cp);
 }
 
+// The backward of a layer whose input x (bf16 rows [kTile, pad32(H)]) is a hidden ReLU's
+// output: dW [pad16(n_out), H] += dY^T x, then dX = (dY W) where x > 0, into dx (float32 [kTile, H])
+// and dxb (its bf16 rows). dY: float32 dy [kTile, pad16(n_out)] and its bf16 rows dyb; `l` is
+// the layer as the backward reads it (its n_in is the forward's n_out).
+void hidden_backward(const Dims& d, const Layer& l, const float* dy, const bf16* dyb,
+                     const bf16* x, float* dw, float* dx, bf16* dxb, Bf16Work& t) {
+  const int n_out = pad16(l.n_in);
+  amx::outer(dy, n_out, n_out, x, d.H, dw, t.scratch);
+  amx::product(dyb, amx::pad32(l.n_in), l.packed.data(), d.H, dx, d.H);
+  amx::finish(dx, d.H, d.H, false, x, dxb);
+}
+
 void backward_tile(const Dims& d, const Weights& w, const float* e, const float* sh,
                    const int64_t* ri, const float* gp, int64_t n0, int m, Bf16Work& t,
                    const Grads& a, float* ge) {
   using amx::pad32;
-  const int h32 = pad32(d.H);
   forward_tile(d, w, e, sh, ri, n0, m, t, false);
   colour_grads(d, gp, n0, m, t.fa);
   amx::rows_to_bf16(t.fa, d.Cp, kTile, d.C, t.ba, pad32(d.C));
-  amx::outer(t.fa, d.Cp, d.Cp, t.h3, d.H, a.w[4], t.scratch);
-  amx::product(t.ba, pad32(d.C), w.bwd[4].packed.data(), d.H, t.fb, d.H);  // dh3
-  amx::finish(t.fb, d.H, d.H, false, t.h3, t.bb);
-  amx::outer(t.fb, d.H, d.H, t.h2, d.H, a.w[3], t.scratch);
-  amx::product(t.bb, h32, w.bwd[3].packed.data(), d.H, t.fa, d.H);  // dh2
-  amx::finish(t.fa, d.H, d.H, false, t.h2, t.ba);
+  hidden_backward(d, w.bwd[4], t.fa, t.ba, t.h3, a.w[4], t.fb, t.bb, t);  // dh3
+  hidden_backward(d, w.bwd[3], t.fb, t.bb, t.h2, a.w[3], t.fa, t.ba, t);  // dh2
   amx::outer(t.fa, d.H, d.H, t.cin, d.Cinp, a.w[2], t.scratch);
-  amx::product(t.ba, h32, w.bwd[2].packed.data(), d.Cinp, t.fb, d.Cinp);  // dcin
+  amx::product(t.ba, pad32(d.H), w.bwd[2].packed.data(), d.Cinp, t.fb, d.Cinp);  // dcin
   geometry_grads(d, gp, n0, m, t.fb, t.fa);
   amx::rows_to_bf16(t.fa, d.Gp, kTile, d.G, t.ba, pad32(d.G));
-  amx::outer(t.fa, d.Gp, d.Gp, t.h1, d.H, a.w[1], t.scratch);
-  amx::product(t.ba, pad32(d.G), w.bwd[1].packed.data(), d.H, t.fb, d.H);  // dh1
-  amx::finish(t.fb, d.H, d.H, false, t.h1, t.bb);
+  hidden_backward(d, w.bwd[1], t.fa, t.ba, t.h1, a.w[1], t.fb, t.bb, t);  // dh1
   amx::outer(t.fb, d.H, d.H, t.e, d.Ep, a.w[0], t.scratch);
-  amx::product(t.bb, h32, w.bwd[0].packed.data(), d.Ep, t.fa, d.Ep);  // de
+  amx::product(t.bb, pad32(d.H), w.bwd[0].packed.data(), d.Ep, t.fa, d.Ep);  // de
   for (int p = 0; p < m; ++p) std::memcpy(ge + (n0 + p) * d.E, t.fa + p * d.Ep, d.E * 4);
 }
 
