@@ -13,9 +13,10 @@ import torch
 
 from dronecap.camera import Camera
 
+from .backend import kernel
 from .marching import Samples
-from .photometric import normalized_radius
-from .rays import frame_rays
+from .photometric import corner_distance_sq, normalized_radius
+from .rays import direction_tables, frame_rays
 
 
 class RayBatch(NamedTuple):
@@ -44,6 +45,7 @@ def draw_rays(
     images_per_step: int,
     n_rays: int,
     generator: torch.Generator,
+    backend: str = "auto",
 ) -> RayBatch:
     """``n_rays`` random pixels of ``images_per_step`` random frames of ``images``.
 
@@ -54,6 +56,8 @@ def draw_rays(
         cameras: the table of cameras (lens models included); ``camera_index`` (int64 [N]) picks
             each frame's.
         background: [C] colour in [0, 1] for frames without alpha.
+        backend: the marching kernel's backend (``nerf.backend``): on the CPU with the C++
+            kernel, one pass over the rays instead of ~25 tensor ops; the same random draws.
     """
     g, dev = generator, images.device
     n_img, h, w, c = images.shape
@@ -61,15 +65,37 @@ def draw_rays(
     which = imgs[torch.randint(imgs.numel(), (n_rays,), generator=g, device=dev)]
     u = torch.randint(w, (n_rays,), generator=g, device=dev)
     v = torch.randint(h, (n_rays,), generator=g, device=dev)
+    if alpha is not None:
+        bg = torch.rand((n_rays, c), generator=g, device=dev)
+    else:
+        bg = torch.as_tensor(background, dtype=torch.float32, device=dev).expand(n_rays, c)
+    ext = kernel("march", backend) if dev.type == "cpu" else None
+    if ext is None:
+        return _gather(images, alpha, poses, cameras, camera_index, which, u, v, bg)
+    cam = cameras[0]
+    origins, dirs, target, radius = ext.draw(
+        images.contiguous(),
+        torch.zeros(0, dtype=torch.uint8) if alpha is None else alpha.contiguous(),
+        poses.float().contiguous(),
+        direction_tables(cameras),
+        camera_index.contiguous(),
+        which, u, v, bg.contiguous(),
+        float(cam.cx), float(cam.cy), corner_distance_sq(cam),
+    )  # fmt: skip
+    return RayBatch(origins, dirs, target, bg, which, radius)
+
+
+def _gather(images, alpha, poses, cameras, camera_index, which, u, v, bg) -> RayBatch:
+    """The PyTorch reference of the kernel's ``draw``: the rays and targets of pixels
+    ``(which, v, u)`` [R] (the arguments of :func:`draw_rays`; ``bg`` [R, C])."""
+    n_img, h, w, c = images.shape
     origins, dirs = frame_rays(poses[which], cameras, camera_index[which], u, v)
     pixel = (which * h + v) * w + u  # one flat gather instead of indexing [which, v, u]
     rgb = images.reshape(-1, c)[pixel].float() / 255.0
     if alpha is not None:
         a = (alpha.reshape(-1)[pixel].float() / 255.0).unsqueeze(-1)
-        bg = torch.rand((n_rays, c), generator=g, device=dev)
         target = rgb * a + bg * (1.0 - a)
     else:
-        bg = torch.as_tensor(background, dtype=torch.float32, device=dev).expand(n_rays, c)
         target = rgb
     return RayBatch(origins, dirs, target, bg, which, normalized_radius(u, v, cameras[0]))
 

@@ -54,12 +54,16 @@ def normalized_radius(u: Tensor, v: Tensor, camera: Camera) -> Tensor:
     """
     du = u.float() + 0.5 - camera.cx
     dv = v.float() + 0.5 - camera.cy
-    corner = max(
+    return torch.sqrt((du * du + dv * dv) / max(corner_distance_sq(camera), 1e-12))
+
+
+def corner_distance_sq(camera: Camera) -> float:
+    """Squared distance (px^2) from the principal point to the farthest image corner."""
+    return max(
         (x - camera.cx) ** 2 + (y - camera.cy) ** 2
         for x in (0, camera.width)
         for y in (0, camera.height)
     )
-    return torch.sqrt((du * du + dv * dv) / max(corner, 1e-12))
 
 
 class Photometric(nn.Module):

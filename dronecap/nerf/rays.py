@@ -55,7 +55,7 @@ def camera_rays(c2w: Tensor, camera: Camera, u: Tensor, v: Tensor) -> tuple[Tens
 
 
 @functools.lru_cache(maxsize=4)
-def _direction_tables(cameras: tuple[Camera, ...]) -> Tensor:
+def direction_tables(cameras: tuple[Camera, ...]) -> Tensor:
     """The direction tables of ``cameras`` stacked: float32 [K, H, W, 3] CPU tensor."""
     return torch.stack([pixel_directions(k) for k in cameras])
 
@@ -88,7 +88,7 @@ def frame_rays(
     """
     if len(cameras) == 1:
         return camera_rays(c2w, cameras[0], u, v)
-    table = _direction_tables(cameras).to(c2w.device)
+    table = direction_tables(cameras).to(c2w.device)
     d = table[which.long(), v.long(), u.long()]
     c2w = c2w.float()
     dirs = (c2w[:, :3, :3] @ d.unsqueeze(-1)).squeeze(-1)

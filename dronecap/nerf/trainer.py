@@ -108,6 +108,7 @@ class Trainer:
         self.samples_per_ray = float(min(cfg.max_samples_per_ray, cfg.march_steps))
         self.images = None
         self.camera: Camera | None = None
+        self.backend = backend
         self.march = march_function(backend)
         self.field.prepare_kernels()  # kernels built before any step is timed
 
@@ -148,7 +149,7 @@ class Trainer:
         """Random pixels of ``images_per_step`` random training images: rays and targets."""
         return draw_rays(
             self.images, self.alpha, self.poses, self.cameras, self.camera_index,
-            self.scene.background, self.cfg.images_per_step, n_rays, self.generator,
+            self.scene.background, self.cfg.images_per_step, n_rays, self.generator, self.backend,
         )  # fmt: skip
 
     def plan(self, steps: int) -> None:
@@ -258,7 +259,7 @@ class Trainer:
         for i, group in enumerate(self.optimizer.param_groups):
             group["lr"] = lr * (self.cfg.photometric_lr_ratio if i == PHOTOMETRIC_GROUP else 1.0)
         rays, s = self._march_batch()
-        self.optimizer.zero_grad(set_to_none=False)
+        self.optimizer.zero_grad()  # None: the backward hands its gradients over, no sums
         loss = self.accumulate_gradients(rays, s)
         ok = math.isfinite(loss) and self._grads_finite()
         if ok:

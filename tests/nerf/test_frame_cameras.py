@@ -5,11 +5,14 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 
 from dronecap.datasets.format import Dataset
+from dronecap.nerf.backend import kernel
+from dronecap.nerf.batch import RayBatch, draw_rays
 from dronecap.nerf.config import preset
-from dronecap.nerf.rays import camera_rays, frame_rays
+from dronecap.nerf.rays import camera_rays, direction_tables, frame_cameras, frame_rays
 from dronecap.nerf.trainer import Trainer
 
 
@@ -63,3 +66,26 @@ def test_trainer_casts_every_frames_rays_through_its_own_camera(make_cube) -> No
     logs = tr.train(5)
     assert len(logs) == 5 and all(np.isfinite(x["loss"]) for x in logs)
     assert np.isfinite(tr.evaluate(ds, np.flatnonzero(ds.split == 2))["psnr"])
+
+
+@pytest.mark.parametrize("with_alpha", [True, False])
+def test_kernel_draws_the_rays_and_targets_of_the_torch_reference(make_cube, with_alpha) -> None:
+    if kernel("march", "auto") is None:
+        pytest.skip("the C++ marching kernel does not build here")
+    ds = two_camera_cube(make_cube)
+    cams, index = frame_cameras(ds, np.arange(ds.n))
+    alpha = torch.as_tensor(ds.alpha) if with_alpha else None
+    args = (torch.as_tensor(ds.images), alpha, torch.as_tensor(ds.poses), cams, index, (0.2,) * 3)
+    draws = [
+        draw_rays(*args, 8, 700, torch.Generator().manual_seed(3), backend)
+        for backend in ("torch", "cpp")
+    ]
+    for name, want, got in zip(RayBatch._fields, *draws, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6, msg=name)
+    with pytest.raises(RuntimeError, match="out of range"):
+        frame, zero = torch.tensor([ds.n + 1]), torch.tensor([0])  # a frame beyond the images
+        no_alpha, tables = torch.zeros(0, dtype=torch.uint8), direction_tables(cams)
+        kernel("march", "cpp").draw(
+            args[0], no_alpha, args[2].float(), tables, index, frame, zero, zero,
+            torch.zeros(1, 3), 1.0, 1.0, 2.0,
+        )  # fmt: skip

@@ -12,7 +12,8 @@
 // buffers are then copied out in ray order.
 //
 // Also here: compositing packed samples into ray colours and its backward (nerf/volrend.py's
-// `composite`), one pass over the samples in ray order.
+// `composite`), one pass over the samples in ray order; and the rays and target colours of a
+// training step's random pixels (nerf/batch.py's `draw_rays`), one pass over the rays.
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
@@ -240,6 +241,79 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor g, torch::Tensor sig
   return {d_sigma, d_rgb, d_bg};
 }
 
+// The rays and targets of R drawn pixels (pixel p of frame which[p] at column u[p], row v[p]):
+// origins [R, 3] = the frame's camera centre, dirs [R, 3] = its rotation times the camera's
+// undistorted direction through the pixel (tables [K, H, W, 3], camera_index [N] -> K),
+// normalised; target [R, C] = the pixel's colour / 255, composited on bg [R, C] by its alpha
+// (uint8 [N, H, W], or an empty tensor: no alpha, target = colour); radius [R] = the pixel
+// centre's distance from (cx, cy) over `corner` (the farthest corner's distance).
+std::vector<torch::Tensor> draw(torch::Tensor images, torch::Tensor alpha, torch::Tensor poses,
+                                torch::Tensor tables, torch::Tensor camera_index,
+                                torch::Tensor which, torch::Tensor u, torch::Tensor v,
+                                torch::Tensor bg, double cx, double cy, double corner) {
+  TORCH_CHECK(images.scalar_type() == torch::kUInt8 && images.dim() == 4 && images.is_contiguous(),
+              "images must be contiguous uint8 [N, H, W, C]");
+  const int64_t n = images.size(0), h = images.size(1), w = images.size(2), c = images.size(3);
+  const bool has_alpha = alpha.numel() > 0;
+  TORCH_CHECK(!has_alpha || (alpha.scalar_type() == torch::kUInt8 && alpha.is_contiguous() &&
+                             alpha.numel() == n * h * w), "alpha must be contiguous uint8 [N, H, W]");
+  TORCH_CHECK(poses.scalar_type() == torch::kFloat32 && poses.is_contiguous() &&
+                  poses.numel() == n * 16, "poses must be contiguous float32 [N, 4, 4]");
+  TORCH_CHECK(tables.scalar_type() == torch::kFloat32 && tables.is_contiguous() &&
+                  tables.dim() == 4 && tables.size(1) == h && tables.size(2) == w &&
+                  tables.size(3) == 3, "direction tables must be contiguous float32 [K, H, W, 3]");
+  const int64_t r = which.numel(), k_cams = tables.size(0);
+  for (const auto& t : {camera_index, which, u, v}) {
+    TORCH_CHECK(t.scalar_type() == torch::kInt64 && t.is_contiguous() && t.dim() == 1,
+                "indices must be contiguous int64 [*]");
+  }
+  TORCH_CHECK(camera_index.numel() == n && u.numel() == r && v.numel() == r,
+              "camera_index must be [N] and u, v [R]");
+  TORCH_CHECK(bg.scalar_type() == torch::kFloat32 && bg.is_contiguous() && bg.dim() == 2 &&
+                  bg.size(0) == r && bg.size(1) == c, "bg must be contiguous float32 [R, C]");
+  const auto f32 = images.options().dtype(torch::kFloat32);
+  auto origins = torch::empty({r, 3}, f32), dirs = torch::empty({r, 3}, f32);
+  auto target = torch::empty({r, c}, f32), radius = torch::empty({r}, f32);
+  const uint8_t *im = images.data_ptr<uint8_t>(), *al = has_alpha ? alpha.data_ptr<uint8_t>() : nullptr;
+  const float *ps = poses.data_ptr<float>(), *tb = tables.data_ptr<float>(), *bp = bg.data_ptr<float>();
+  const int64_t *ci = camera_index.data_ptr<int64_t>(), *wp = which.data_ptr<int64_t>();
+  const int64_t *up = u.data_ptr<int64_t>(), *vp = v.data_ptr<int64_t>();
+  float *op = origins.data_ptr<float>(), *dp = dirs.data_ptr<float>();
+  float *tp = target.data_ptr<float>(), *rp = radius.data_ptr<float>();
+  bool bad = false;
+  const float fcx = float(cx), fcy = float(cy), fcorner = float(std::max(corner, 1e-12));
+#pragma omp parallel for schedule(static) num_threads(at::get_num_threads()) reduction(|| : bad)
+  for (int64_t p = 0; p < r; ++p) {
+    const int64_t f = wp[p], x = up[p], y = vp[p];
+    if (f < 0 || f >= n || x < 0 || x >= w || y < 0 || y >= h || ci[f] < 0 || ci[f] >= k_cams) {
+      bad = true;
+      continue;
+    }
+    const float* m = ps + f * 16;  // row-major [4, 4] camera-to-world
+    const float* d = tb + ((ci[f] * h + y) * w + x) * 3;
+    float out[3], norm2 = 0.0f;
+    for (int i = 0; i < 3; ++i) {
+      out[i] = m[i * 4] * d[0] + m[i * 4 + 1] * d[1] + m[i * 4 + 2] * d[2];
+      norm2 += out[i] * out[i];
+    }
+    const float norm = std::sqrt(norm2);
+    for (int i = 0; i < 3; ++i) {
+      op[p * 3 + i] = m[i * 4 + 3];
+      dp[p * 3 + i] = out[i] / norm;
+    }
+    const int64_t pixel = (f * h + y) * w + x;
+    const float a = has_alpha ? float(al[pixel]) / 255.0f : 1.0f;
+    for (int64_t k = 0; k < c; ++k) {
+      const float rgb = float(im[pixel * c + k]) / 255.0f;
+      tp[p * c + k] = has_alpha ? rgb * a + bp[p * c + k] * (1.0f - a) : rgb;
+    }
+    const float du = float(x) + 0.5f - fcx, dv = float(y) + 0.5f - fcy;
+    rp[p] = std::sqrt((du * du + dv * dv) / fcorner);
+  }
+  TORCH_CHECK(!bad, "a drawn pixel, frame or camera index is out of range");
+  return {origins, dirs, target, radius};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // the GIL is released while the kernel runs: another Python thread can work meanwhile
   m.def("march", &march, "occupancy-grid ray marching into packed samples",
@@ -247,5 +321,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite", &composite_forward, "ray colours of packed samples",
         py::call_guard<py::gil_scoped_release>());
   m.def("composite_backward", &composite_backward, "gradients of composite",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("draw", &draw, "rays and target colours of drawn pixels",
         py::call_guard<py::gil_scoped_release>());
 }

@@ -306,7 +306,7 @@ struct Bf16Work {
   alignas(64) float c[kTile * 16];    // colour logits [kTile, Cp]
   alignas(64) float fa[kTile * 128], fb[kTile * 128];  // float32 results and gradients
   alignas(64) bf16 ba[kTile * 128], bb[kTile * 128];   // the same rounded, for the next product
-  alignas(64) bf16 scratch[kTile * 256];               // amx::outer's blocks
+  amx::OuterSums sums[5];                              // the five layers' weight gradients
 };
 
 void forward_tile(const Dims& d, const Weights& w, const float* e, const float* sh,
@@ -334,9 +334,9 @@ void forward_tile(const Dims& d, const Weights& w, const float* e, const float* 
 // and dxb (its bf16 rows). dY: float32 dy [kTile, pad16(n_out)] and its bf16 rows dyb; `l` is
 // the layer as the backward reads it (its n_in is the forward's n_out).
 void hidden_backward(const Dims& d, const Layer& l, const float* dy, const bf16* dyb,
-                     const bf16* x, float* dw, float* dx, bf16* dxb, Bf16Work& t) {
+                     const bf16* x, float* dw, float* dx, bf16* dxb, amx::OuterSums& sums) {
   const int n_out = pad16(l.n_in);
-  amx::outer(dy, n_out, n_out, x, d.H, dw, t.scratch);
+  sums.add(dy, n_out, n_out, x, d.H, dw);
   amx::product(dyb, amx::pad32(l.n_in), l.packed.data(), d.H, dx, d.H);
   amx::finish(dx, d.H, d.H, false, x, dxb);
 }
@@ -348,20 +348,23 @@ void backward_tile(const Dims& d, const Weights& w, const float* e, const float*
   forward_tile(d, w, e, sh, ri, n0, m, t, false);
   colour_grads(d, gp, n0, m, t.fa);
   amx::rows_to_bf16(t.fa, d.Cp, kTile, d.C, t.ba, pad32(d.C));
-  hidden_backward(d, w.bwd[4], t.fa, t.ba, t.h3, a.w[4], t.fb, t.bb, t);  // dh3
-  hidden_backward(d, w.bwd[3], t.fb, t.bb, t.h2, a.w[3], t.fa, t.ba, t);  // dh2
-  amx::outer(t.fa, d.H, d.H, t.cin, d.Cinp, a.w[2], t.scratch);
+  hidden_backward(d, w.bwd[4], t.fa, t.ba, t.h3, a.w[4], t.fb, t.bb, t.sums[4]);  // dh3
+  hidden_backward(d, w.bwd[3], t.fb, t.bb, t.h2, a.w[3], t.fa, t.ba, t.sums[3]);  // dh2
+  t.sums[2].add(t.fa, d.H, d.H, t.cin, d.Cinp, a.w[2]);
   amx::product(t.ba, pad32(d.H), w.bwd[2].packed.data(), d.Cinp, t.fb, d.Cinp);  // dcin
   geometry_grads(d, gp, n0, m, t.fb, t.fa);
   amx::rows_to_bf16(t.fa, d.Gp, kTile, d.G, t.ba, pad32(d.G));
-  hidden_backward(d, w.bwd[1], t.fa, t.ba, t.h1, a.w[1], t.fb, t.bb, t);  // dh1
-  amx::outer(t.fb, d.H, d.H, t.e, d.Ep, a.w[0], t.scratch);
+  hidden_backward(d, w.bwd[1], t.fa, t.ba, t.h1, a.w[1], t.fb, t.bb, t.sums[1]);  // dh1
+  t.sums[0].add(t.fb, d.H, d.H, t.e, d.Ep, a.w[0]);
   amx::product(t.bb, pad32(d.H), w.bwd[0].packed.data(), d.Ep, t.fa, d.Ep);  // de
   for (int p = 0; p < m; ++p) std::memcpy(ge + (n0 + p) * d.E, t.fa + p * d.Ep, d.E * 4);
 }
 
 void start(Bf16Work&) { amx::begin(); }
-void stop(Bf16Work&) { amx::end(); }
+void stop(Bf16Work& t) {
+  for (auto& s : t.sums) s.flush();  // the weight-gradient sums still kept
+  amx::end();
+}
 #endif
 
 // The forward of all N rows, tile by tile on each thread: out [N, 1 + C].
