@@ -14,7 +14,7 @@ from torch import Tensor, nn
 from .config import TrainConfig, mlp_dtype
 from .far_field import make_far_field
 from .hashgrid import HashGrid
-from .mlp_kernel import amx, field_logits, usable
+from .mlp_kernel import amx, field_outputs, usable
 from .sh import sh_dim, sh_encode
 
 DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
@@ -270,10 +270,10 @@ class Field(nn.Module):
         """
         enc = self.encoding(unit, cached=encoded)
         if self.prepare_kernels():
-            logits = field_logits(
-                enc, dir_enc, ray_indices, self.density_mlp, self.color_mlp, self._amx_bf16()
-            )
-            return torch.sigmoid(logits[:, 1:]), trunc_exp(logits[:, 0])
+            return field_outputs(
+                enc, dir_enc, ray_indices, self.density_mlp, self.color_mlp, MAX_LOG_DENSITY,
+                self._amx_bf16(),
+            )  # fmt: skip
         sigma, geo = self.geometry_from_encoding(enc)
         return self.color_from_encoding(geo, dir_enc[ray_indices]), sigma
 

@@ -3,9 +3,10 @@
 With torch, each layer of the density and colour MLPs is a matrix product over the whole batch
 followed by a ReLU pass, and every [N, 64] activation (2 MB at 8k samples) leaves the core's L2
 cache between one op and the next. The kernel takes 32 samples at a time through every layer,
-and their backward, while they sit in L1. It computes the density logit and the colour logits
-of each sample; the activations (``trunc_exp``, sigmoid) stay in torch. Its forward and
-backward match the torch layers up to float32 summation order (tests/nerf/test_mlp_kernel.py).
+and their backward, while they sit in L1. It returns each sample's colour (sigmoid of the colour
+logits) and density (``trunc_exp`` of the density logit), and its backward takes their
+gradients: the activations cost no torch ops either way. Its forward and backward match the
+torch layers up to float32 summation order (tests/nerf/test_mlp_kernel.py).
 
 It covers the shape every preset has: a density MLP of one hidden layer, a colour MLP of two,
 float32 storage and products, a hidden width that is a multiple of 16 (at most 128). Other
@@ -45,30 +46,34 @@ def usable(density_mlp: nn.Sequential, color_mlp: nn.Sequential, backend: str) -
     return widths_fit and kernel("mlp", backend) is not None
 
 
-def field_logits(
+def field_outputs(
     encoded: Tensor,
     dir_enc: Tensor,
     ray_indices: Tensor,
     density_mlp: nn.Sequential,
     color_mlp: nn.Sequential,
+    max_log_density: float,
     bf16: bool = False,
-) -> Tensor:
-    """Density and colour logits of samples through both MLPs, with autograd.
+) -> tuple[Tensor, Tensor]:
+    """Colour and density of samples through both MLPs and their activations, with autograd.
 
     Args:
         encoded: [N, E] the samples' hash encodings (gradient flows back to them).
         dir_enc: [R, S] SH encoding of each ray's direction (no gradient).
         ray_indices: [N] int64, each sample's ray.
         density_mlp, color_mlp: as :func:`usable` accepts; their weights get gradients.
+        max_log_density: the density logit's clamp (``nerf.field.trunc_exp``).
         bf16: multiply bf16-rounded inputs on the AMX tiles (float32 sums, outputs and weight
             gradients); only where :func:`amx` is true.
 
     Returns:
-        [N, 1 + C] float32: column 0 the density logit (the density MLP's first output),
-        columns 1.. the colour logits.
+        colour [N, C] in (0, 1) (sigmoid of the colour MLP's outputs) and density [N] per
+        scene unit (exp of the density MLP's first output clamped to +-``max_log_density``),
+        float32.
     """
     weights = [m.weight for m in (*density_mlp, *color_mlp) if isinstance(m, nn.Linear)]
-    return _FusedMLP.apply(encoded, dir_enc.detach(), ray_indices, bf16, *weights)
+    lim = float(max_log_density)
+    return _FusedMLP.apply(encoded, dir_enc.detach(), ray_indices, bf16, lim, *weights)
 
 
 @functools.cache
@@ -83,18 +88,24 @@ class _FusedMLP(torch.autograd.Function):
     """Autograd wrapper of the kernel: gradients for the encodings and the five weights."""
 
     @staticmethod
-    def forward(ctx, encoded, dir_enc, ray_indices, bf16, *weights):  # noqa: D102
+    def forward(ctx, encoded, dir_enc, ray_indices, bf16, lim, *weights):  # noqa: D102
         args = (encoded.float().contiguous(), dir_enc.float().contiguous(), ray_indices.long())
-        ctx.save_for_backward(*args, *weights)
-        ctx.bf16 = bf16
-        return backend_load("mlp").forward(*args, *(w.float() for w in weights), bf16)
+        ws = [w.float() for w in weights]
+        rgb, sigma, logit = backend_load("mlp").forward(*args, *ws, bf16, lim)
+        ctx.save_for_backward(rgb, sigma, logit, *args, *weights)
+        ctx.bf16, ctx.lim = bf16, lim
+        ctx.mark_non_differentiable(logit)
+        return rgb, sigma
 
     @staticmethod
-    def backward(ctx, grad):  # noqa: D102
-        encoded, dir_enc, ray_indices, *weights = ctx.saved_tensors
+    def backward(ctx, g_rgb, g_sigma):  # noqa: D102
+        rgb, sigma, logit, encoded, dir_enc, ray_indices, *weights = ctx.saved_tensors
         ws = [w.float() for w in weights]
+        g_rgb = torch.zeros_like(rgb) if g_rgb is None else g_rgb.float()
+        g_sigma = torch.zeros_like(sigma) if g_sigma is None else g_sigma.float()
         grads = backend_load("mlp").backward(
-            grad.float().contiguous(), encoded, dir_enc, ray_indices, *ws, ctx.bf16
-        )
+            g_rgb, g_sigma, rgb, sigma, logit, encoded, dir_enc, ray_indices, *ws, ctx.bf16,
+            ctx.lim,
+        )  # fmt: skip
         grad_e = grads[0] if ctx.needs_input_grad[0] else None
-        return grad_e, None, None, None, *grads[1:]
+        return grad_e, None, None, None, None, *grads[1:]

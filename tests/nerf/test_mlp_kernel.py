@@ -1,13 +1,15 @@
 """The fused C++ MLPs of the training pass: the torch layers' values and gradients."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
 from dronecap.nerf.backend import kernel
 from dronecap.nerf.config import preset
-from dronecap.nerf.field import Field
-from dronecap.nerf.mlp_kernel import amx, field_logits, usable
+from dronecap.nerf.field import MAX_LOG_DENSITY, Field, trunc_exp
+from dronecap.nerf.mlp_kernel import amx, field_outputs, usable
 
 AABB = np.array([[-1.0, -1, -1], [1, 1, 1]])
 needs_kernel = pytest.mark.skipif(
@@ -25,9 +27,23 @@ def _field(channels: int = 3, **changes) -> Field:
     return f
 
 
-def _torch_logits(f: Field, enc: torch.Tensor, dir_enc: torch.Tensor, ri: torch.Tensor):
+def _torch_outputs(f: Field, enc: torch.Tensor, dir_enc: torch.Tensor, ri: torch.Tensor):
     h = f._run(f.density_mlp, enc)
-    return torch.cat([h[:, :1], f._run(f.color_mlp, torch.cat([h, dir_enc[ri]], -1))], 1)
+    return _activated(h, f._run(f.color_mlp, torch.cat([h, dir_enc[ri]], -1)))
+
+
+def _activated(h: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """[colour | density] [N, C + 1] from the density MLP's outputs h and the colour logits c."""
+    return torch.cat([torch.sigmoid(c), trunc_exp(h[:, :1])], 1)
+
+
+def _fused(f: Field, enc, dir_enc, ri, bf16: bool = False) -> torch.Tensor:
+    rgb, sigma = field_outputs(enc, dir_enc, ri, f.density_mlp, f.color_mlp, MAX_LOG_DENSITY, bf16)
+    return torch.cat([rgb, sigma[:, None]], 1)
+
+
+def _seed(n: int) -> torch.Generator:
+    return torch.Generator().manual_seed(n)
 
 
 def _samples(f: Field, n: int, rays: int, seed: int = 1):
@@ -44,15 +60,15 @@ def _samples(f: Field, n: int, rays: int, seed: int = 1):
     [(3, {}), (1, {}), (3, {"hidden": 32}), (3, {"hidden": 48, "geo_features": 15}),
      (3, {"levels": 5, "features": 3})],
 )  # fmt: skip
-def test_fused_logits_and_gradients_match_the_torch_layers(channels, changes):
+def test_fused_outputs_and_gradients_match_the_torch_layers(channels, changes):
     f = _field(channels, **changes)
     assert usable(f.density_mlp, f.color_mlp, "auto")
     weights = [m.weight for m in (*f.density_mlp, *f.color_mlp) if isinstance(m, torch.nn.Linear)]
     for n in (0, 1, 33, 1000):  # empty, a partial tile, several tiles
         enc, dir_enc, ri = _samples(f, n, rays=max(n // 7, 1))
         e1, e2 = enc.clone().requires_grad_(), enc.clone().requires_grad_()
-        want = _torch_logits(f, e1, dir_enc, ri)
-        got = field_logits(e2, dir_enc, ri, f.density_mlp, f.color_mlp)
+        want = _torch_outputs(f, e1, dir_enc, ri)
+        got = _fused(f, e2, dir_enc, ri)
         assert got.shape == (n, 1 + channels)
         assert torch.allclose(got, want, rtol=1e-5, atol=1e-5)
         if n == 0:
@@ -84,14 +100,14 @@ class _RoundedLinear(torch.autograd.Function):
         return _bf16(g) @ _bf16(w), _bf16(g).T @ _bf16(x)
 
 
-def _rounded_logits(f: Field, enc, dir_enc, ri):
+def _rounded_outputs(f: Field, enc, dir_enc, ri):
     def run(mlp, x):
         for m in mlp:
             x = torch.relu(x) if isinstance(m, torch.nn.ReLU) else _RoundedLinear.apply(x, m.weight)
         return x
 
     h = run(f.density_mlp, enc)
-    return torch.cat([h[:, :1], run(f.color_mlp, torch.cat([h, dir_enc[ri]], -1))], 1)
+    return _activated(h, run(f.color_mlp, torch.cat([h, dir_enc[ri]], -1)))
 
 
 @pytest.mark.skipif(not amx(), reason="bf16 products need AMX-BF16 tiles (Intel Xeon 4th gen+)")
@@ -104,9 +120,9 @@ def test_bf16_products_are_the_rounded_products_summed_in_float32(channels, chan
     for n in (1, 33, 1000):
         enc, dir_enc, ri = _samples(f, n, rays=max(n // 7, 1))
         e1, e2, e3 = (enc.clone().requires_grad_() for _ in range(3))
-        want = _rounded_logits(f, e1, dir_enc, ri)
-        got = field_logits(e2, dir_enc, ri, f.density_mlp, f.color_mlp, bf16=True)
-        exact = field_logits(e3, dir_enc, ri, f.density_mlp, f.color_mlp, bf16=False)
+        want = _rounded_outputs(f, e1, dir_enc, ri)
+        got = _fused(f, e2, dir_enc, ri, bf16=True)
+        exact = _fused(f, e3, dir_enc, ri)
         # float32 sums in another order may round an activation to the next bf16 (2^-8 apart)
         top = float(want.detach().abs().max())
         assert torch.allclose(got, want, rtol=1e-3, atol=2e-3 * top)
@@ -137,14 +153,26 @@ def test_field_colour_and_density_of_samples_follow_the_torch_path():
 
 @needs_kernel
 def test_huge_and_zero_weights_stay_finite():
-    f = _field()
+    f, plain = _field(), _field()
+    plain._fused_mlp = False  # the torch layers
     enc, dir_enc, ri = _samples(f, 64, rays=8)
-    with torch.no_grad():
-        f.density_mlp[-1].weight.mul_(1e6)
-        f.color_mlp[-1].weight.mul_(1e6)
+    for m in (f, plain):
+        with torch.no_grad():  # logits of ~1e3: the clamp and the sigmoid saturate
+            m.encoding.table.copy_(torch.randn(m.encoding.table.shape, generator=_seed(5)))
+            m.density_mlp[-1].weight.mul_(1e3)
+            m.color_mlp[-1].weight.mul_(1e3)
     pts = torch.rand(64, 3) * 2 - 1
     c, s = f.color_sigma(f.unit(pts), dir_enc, ri)
     assert torch.isfinite(c).all() and torch.isfinite(s).all() and (s >= 0).all()
+    lo, hi = float(s.detach().min()), float(s.detach().max())
+    assert (lo, hi) == pytest.approx(math.exp(MAX_LOG_DENSITY) ** np.array([-1, 1]), rel=1e-5)
+    c2, s2 = plain.color_sigma(plain.unit(pts), dir_enc, ri)
+    assert torch.allclose(c, c2, atol=1e-6) and torch.allclose(s, s2, rtol=1e-5)
+    (c.sum() + s.sum()).backward()
+    (c2.sum() + s2.sum()).backward()  # no gradient through a clamped logit, on both paths
+    for a, b in zip(f.parameters(), plain.parameters(), strict=True):
+        assert torch.isfinite(a.grad).all()
+        assert torch.allclose(a.grad, b.grad, rtol=1e-4, atol=1e-4 * float(b.grad.abs().max()))
     with torch.no_grad():
         for p in f.parameters():
             p.zero_()

@@ -6,8 +6,10 @@
 //   h2 = relu(W3 [g, d])       d: SH of the ray's direction [S]   W3 [H, G + S]
 //   h3 = relu(W4 h2)                                              W4 [H, H]
 //   c  = W5 h3                 colour logits [C]                  W5 [C, H]
-// Forward returns [N, 1 + C]: g[0] and c (the density and colour activations stay in torch).
-// Backward recomputes the forward of a tile and returns the gradients of e and of W1..W5.
+// Forward returns the colour sigmoid(c) [N, C], the density exp(clamp(g[0], -lim, lim)) [N] and
+// the logit g[0] [N] (which the backward's clamp gradient needs). Backward takes the gradients
+// of colour and density, recomputes the forward of a tile and returns the gradients of e and
+// of W1..W5.
 //
 // Why: with torch each layer is a matrix product over the whole batch followed by a ReLU pass,
 // and every [N, 64] activation (2 MB at 8k samples) leaves the 2 MB L2 cache between ops; here
@@ -27,6 +29,7 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <memory>
@@ -367,10 +370,22 @@ void stop(Bf16Work& t) {
 }
 #endif
 
-// The forward of all N rows, tile by tile on each thread: out [N, 1 + C].
+// The activations of the outputs: colour = sigmoid of its logits, density = exp of its logit
+// clamped to [-lim, lim] (nerf/field.py's trunc_exp).
+struct Outputs {
+  float *rgb, *sigma, *logit;  // [N, C], [N], [N]
+  float lim;
+  void put(const Dims& d, int64_t i, float g0, const float* c) const {
+    logit[i] = g0;
+    sigma[i] = std::exp(std::fmin(std::fmax(g0, -lim), lim));
+    for (int k = 0; k < d.C; ++k) rgb[i * d.C + k] = 1.0f / (1.0f + std::exp(-c[k]));
+  }
+};
+
+// The forward of all N rows, tile by tile on each thread, into out.
 template <class Work>
 void forward_rows(const Dims& d, const Weights& w, const float* e, const float* sh,
-                  const int64_t* ri, int64_t n, float* out) {
+                  const int64_t* ri, int64_t n, const Outputs& out) {
   const int64_t tiles = (n + kTile - 1) / kTile;
 #pragma omp parallel num_threads(at::get_num_threads())
   {
@@ -385,11 +400,7 @@ void forward_rows(const Dims& d, const Weights& w, const float* e, const float* 
         if constexpr (std::is_same_v<Work, Fp32Work>) return k->t;
         else return *k;
       }();
-      for (int p = 0; p < m; ++p) {
-        float* o = out + (n0 + p) * (1 + d.C);
-        o[0] = t.g[p * d.Gp];
-        std::memcpy(o + 1, t.c + p * d.Cp, d.C * 4);
-      }
+      for (int p = 0; p < m; ++p) out.put(d, n0 + p, t.g[p * d.Gp], t.c + p * d.Cp);
     }
     stop(*k);
   }
@@ -445,37 +456,68 @@ Dims dims_of(const torch::Tensor& e, const torch::Tensor& sh, const torch::Tenso
 
 }  // namespace
 
-// e [N, E] encodings, sh [R, S] SH of each ray's direction, ri [N] each sample's ray.
-// Returns [N, 1 + C]: the density logit and the colour logits.
-torch::Tensor mlp_forward(torch::Tensor e, torch::Tensor sh, torch::Tensor ri, torch::Tensor w1,
-                          torch::Tensor w2, torch::Tensor w3, torch::Tensor w4, torch::Tensor w5,
-                          bool bf16) {
+// e [N, E] encodings, sh [R, S] SH of each ray's direction, ri [N] each sample's ray, lim the
+// density logit's clamp. Returns {colour [N, C], density [N], density logit [N]}.
+std::vector<torch::Tensor> mlp_forward(torch::Tensor e, torch::Tensor sh, torch::Tensor ri,
+                                       torch::Tensor w1, torch::Tensor w2, torch::Tensor w3,
+                                       torch::Tensor w4, torch::Tensor w5, bool bf16, double lim) {
   e = e.contiguous(), sh = sh.contiguous(), ri = ri.contiguous();
   const Dims d = dims_of(e, sh, ri, w1, w2, w3, w4, w5, bf16);
   const Weights w = prepare(d, w1, w2, w3, w4, w5, bf16);
   const int64_t n = e.size(0);
-  auto out = torch::empty({n, 1 + d.C}, e.options());
+  auto rgb = torch::empty({n, d.C}, e.options());
+  auto sigma = torch::empty({n}, e.options()), logit = torch::empty({n}, e.options());
+  const Outputs out{rgb.data_ptr<float>(), sigma.data_ptr<float>(), logit.data_ptr<float>(),
+                    float(lim)};
   const float *ep = e.data_ptr<float>(), *sp = sh.data_ptr<float>();
   const int64_t* rp = ri.data_ptr<int64_t>();
 #ifdef DRONECAP_AMX
   if (bf16) {
-    forward_rows<Bf16Work>(d, w, ep, sp, rp, n, out.data_ptr<float>());
-    return out;
+    forward_rows<Bf16Work>(d, w, ep, sp, rp, n, out);
+    return {rgb, sigma, logit};
   }
 #endif
-  forward_rows<Fp32Work>(d, w, ep, sp, rp, n, out.data_ptr<float>());
-  return out;
+  forward_rows<Fp32Work>(d, w, ep, sp, rp, n, out);
+  return {rgb, sigma, logit};
 }
 
-// grad [N, 1 + C] of the forward's output; returns {grad_e [N, E], grad_w1, ..., grad_w5}.
-std::vector<torch::Tensor> mlp_backward(torch::Tensor grad, torch::Tensor e, torch::Tensor sh,
+// The gradients of the logits [N, 1 + C] from those of the forward's outputs: the density's
+// through exp (zero where the clamp held the logit), the colour's through the sigmoid.
+torch::Tensor logit_grads(const torch::Tensor& g_rgb, const torch::Tensor& g_sigma,
+                          const torch::Tensor& rgb, const torch::Tensor& sigma,
+                          const torch::Tensor& logit, double lim) {
+  const int64_t n = rgb.size(0), c = rgb.size(1);
+  for (const auto* t : {&g_rgb, &g_sigma, &rgb, &sigma, &logit})
+    TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->is_contiguous() && t->size(0) == n,
+                "outputs and their gradients must be contiguous float32 with N rows");
+  TORCH_CHECK(g_rgb.sizes() == rgb.sizes() && g_sigma.numel() == n && sigma.numel() == n &&
+              logit.numel() == n, "colour [N, C] and density [N] (and their gradients) expected");
+  auto grad = torch::empty({n, 1 + c}, rgb.options());
+  const float *gr = g_rgb.data_ptr<float>(), *gs = g_sigma.data_ptr<float>();
+  const float *r = rgb.data_ptr<float>(), *s = sigma.data_ptr<float>(), *x = logit.data_ptr<float>();
+  float* o = grad.data_ptr<float>();
+  const float l = float(lim);
+  for (int64_t i = 0; i < n; ++i) {
+    o[i * (1 + c)] = (x[i] >= -l && x[i] <= l) ? gs[i] * s[i] : 0.0f;
+    for (int64_t k = 0; k < c; ++k)
+      o[i * (1 + c) + 1 + k] = gr[i * c + k] * (1.0f - r[i * c + k]) * r[i * c + k];
+  }
+  return grad;
+}
+
+// The backward of mlp_forward for the gradients of its colour and density (and what it
+// returned); returns {grad_e [N, E], grad_w1, ..., grad_w5}.
+std::vector<torch::Tensor> mlp_backward(torch::Tensor g_rgb, torch::Tensor g_sigma,
+                                        torch::Tensor rgb, torch::Tensor sigma,
+                                        torch::Tensor logit, torch::Tensor e, torch::Tensor sh,
                                         torch::Tensor ri, torch::Tensor w1, torch::Tensor w2,
                                         torch::Tensor w3, torch::Tensor w4, torch::Tensor w5,
-                                        bool bf16) {
-  e = e.contiguous(), sh = sh.contiguous(), ri = ri.contiguous(), grad = grad.contiguous();
+                                        bool bf16, double lim) {
+  e = e.contiguous(), sh = sh.contiguous(), ri = ri.contiguous();
   const Dims d = dims_of(e, sh, ri, w1, w2, w3, w4, w5, bf16);
-  TORCH_CHECK(grad.scalar_type() == torch::kFloat32 && grad.size(0) == e.size(0) &&
-                  grad.size(1) == 1 + d.C, "grad must be float32 [N, 1 + C]");
+  TORCH_CHECK(rgb.size(0) == e.size(0) && rgb.dim() == 2 && rgb.size(1) == d.C,
+              "colour must be [N, C]");
+  const auto grad = logit_grads(g_rgb.contiguous(), g_sigma.contiguous(), rgb, sigma, logit, lim);
   const Weights w = prepare(d, w1, w2, w3, w4, w5, bf16);
   const int64_t n = e.size(0);
   const int cin = d.G + d.S;
@@ -513,9 +555,11 @@ std::vector<torch::Tensor> mlp_backward(torch::Tensor grad, torch::Tensor e, tor
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("forward", &mlp_forward, "fused field MLPs: (e, sh, ri, w1..w5) -> [N, 1 + C] logits",
+  m.def("forward", &mlp_forward,
+        "fused field MLPs: (e, sh, ri, w1..w5, bf16, lim) -> (colour [N, C], density [N], logit)",
         py::call_guard<py::gil_scoped_release>());
   m.def("amx", &amx::available, "whether bf16 products can run on this CPU's AMX tiles");
-  m.def("backward", &mlp_backward, "fused field MLPs' backward: -> grad_e, grad_w1..grad_w5",
+  m.def("backward", &mlp_backward, "fused field MLPs' backward: (g_rgb, g_sigma, rgb, sigma, logit, e, ...) -> grad_e, "
+        "grad_w1..grad_w5",
         py::call_guard<py::gil_scoped_release>());
 }
