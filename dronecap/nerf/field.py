@@ -287,7 +287,7 @@ class Field(nn.Module):
 
         A ray's samples share its direction: renderers encode once per ray and gather.
         """
-        return round_to(sh_encode(dirs, self.sh_degree), self.dtype)
+        return round_to(sh_encode(dirs, self.sh_degree, self.encoding.backend), self.dtype)
 
     def color_from_encoding(self, geo: Tensor, dir_enc: Tensor) -> Tensor:
         """Colour [N, C] in (0, 1) from geometry features [N, geo_features] and encoded

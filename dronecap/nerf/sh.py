@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .backend import kernel
+
 
 def sh_dim(degree: int) -> int:
     """Number of coefficients of an encoding of ``degree`` bands (degree 4 -> 16)."""
@@ -13,17 +15,24 @@ def sh_dim(degree: int) -> int:
     return degree * degree
 
 
-def sh_encode(dirs: Tensor, degree: int = 4) -> Tensor:
+def sh_encode(dirs: Tensor, degree: int = 4, backend: str = "auto") -> Tensor:
     """Real SH basis (bands 0..degree-1) evaluated at unit directions.
 
     Args:
         dirs: [N, 3] unit vectors (x, y, z), any float dtype.
         degree: number of bands, 1..4.
+        backend: ``nerf.backend``'s rule for the marching kernel, whose ``sh_encode`` takes
+            float32 CPU directions without autograd in one call (the same values; ~45 tensor
+            ops here).
 
     Returns:
         [N, degree**2] coefficients, same dtype as ``dirs``.
     """
     n = sh_dim(degree)
+    plain = dirs.dtype == torch.float32 and dirs.device.type == "cpu" and not dirs.requires_grad
+    ext = kernel("march", backend) if plain else None
+    if ext is not None:
+        return ext.sh_encode(dirs, degree)
     x, y, z = dirs.unbind(-1)
     out = [torch.full_like(x, 0.28209479177387814)]
     if degree > 1:

@@ -27,7 +27,7 @@ from dronecap.camera import Camera
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
-from . import budget, carve, compaction, occupancy
+from . import adam_step, budget, carve, compaction, occupancy
 from .batch import RayBatch, draw_rays, whole_rays
 from .checkpoint import checkpoint_resolved, read_checkpoint, write_checkpoint
 from .config import TrainConfig
@@ -237,10 +237,6 @@ class Trainer:
         """Everything the optimizer trains: the field's and the photometric model's."""
         return [*self.field.parameters(), *self.photometric.parameters()]
 
-    def _grads_finite(self) -> bool:
-        grads = [p.grad for p in self._parameters() if p.grad is not None]
-        return bool(torch.isfinite(torch.stack([g.sum() for g in grads]).sum()))
-
     def train_step(self) -> dict:
         """One optimizer step; returns its log {step, loss, psnr, samples, rays, ms, lr,
         skipped}."""
@@ -261,9 +257,8 @@ class Trainer:
         rays, s = self._march_batch()
         self.optimizer.zero_grad()  # None: the backward hands its gradients over, no sums
         loss = self.accumulate_gradients(rays, s)
-        ok = math.isfinite(loss) and self._grads_finite()
+        ok = math.isfinite(loss) and adam_step.step(self.optimizer)  # not with inf/NaN gradients
         if ok:
-            self.optimizer.step()
             self.field.encoding.round_storage_()
             self._bad_steps = 0
         else:

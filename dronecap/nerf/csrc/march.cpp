@@ -13,7 +13,8 @@
 //
 // Also here: compositing packed samples into ray colours and its backward (nerf/volrend.py's
 // `composite`), one pass over the samples in ray order; and the rays and target colours of a
-// training step's random pixels (nerf/batch.py's `draw_rays`), one pass over the rays.
+// training step's random pixels (nerf/batch.py's `draw_rays`), one pass over the rays; and the
+// SH encoding of the rays' directions (nerf/sh.py's `sh_encode`).
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
@@ -22,6 +23,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <vector>
 
 namespace {
@@ -314,6 +316,33 @@ std::vector<torch::Tensor> draw(torch::Tensor images, torch::Tensor alpha, torch
   return {origins, dirs, target, radius};
 }
 
+// Real SH basis of bands 0 .. degree - 1 at unit directions dirs [N, 3] -> [N, degree^2]: the
+// coefficients and terms of nerf/sh.py's sh_encode, one row per direction.
+torch::Tensor sh_encode(torch::Tensor dirs, int64_t degree) {
+  TORCH_CHECK(dirs.scalar_type() == torch::kFloat32 && dirs.dim() == 2 && dirs.size(1) == 3,
+              "directions must be float32 [N, 3]");
+  TORCH_CHECK(degree >= 1 && degree <= 4, "sh degree must be 1..4");
+  const auto d = dirs.contiguous();
+  const int64_t n = d.size(0), k = degree * degree;
+  auto out = torch::empty({n, k}, d.options());
+  const float* dp = d.data_ptr<float>();
+  float* op = out.data_ptr<float>();
+  for (int64_t i = 0; i < n; ++i) {
+    const float x = dp[3 * i], y = dp[3 * i + 1], z = dp[3 * i + 2];
+    const float xx = x * x, yy = y * y, zz = z * z;
+    const float v[16] = {
+        0.28209479177387814f, -0.48860251190291987f * y, 0.48860251190291987f * z,
+        -0.48860251190291987f * x, 1.0925484305920792f * x * y, -1.0925484305920792f * y * z,
+        0.94617469575755997f * zz - 0.31539156525251999f, -1.0925484305920792f * x * z,
+        0.54627421529603959f * (xx - yy), 0.59004358992664352f * y * (3 * xx - yy),
+        2.8906114426405538f * x * y * z, 0.45704579946446572f * y * (1 - 5 * zz),
+        0.3731763325901154f * z * (5 * zz - 3), 0.45704579946446572f * x * (1 - 5 * zz),
+        1.4453057213202769f * z * (xx - yy), 0.59004358992664352f * x * (xx - 3 * yy)};
+    std::memcpy(op + i * k, v, k * sizeof(float));
+  }
+  return out;
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // the GIL is released while the kernel runs: another Python thread can work meanwhile
   m.def("march", &march, "occupancy-grid ray marching into packed samples",
@@ -323,5 +352,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_backward", &composite_backward, "gradients of composite",
         py::call_guard<py::gil_scoped_release>());
   m.def("draw", &draw, "rays and target colours of drawn pixels",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("sh_encode", &sh_encode, "real SH basis of unit directions",
         py::call_guard<py::gil_scoped_release>());
 }

@@ -1,0 +1,55 @@
+"""The trainer's direct Adam step: torch's update, none with a non-finite gradient."""
+
+import pytest
+import torch
+
+from dronecap.nerf import adam_step
+
+
+def _model(seed: int = 0) -> list[torch.nn.Parameter]:
+    g = torch.Generator().manual_seed(seed)
+    return [torch.nn.Parameter(torch.randn(shape, generator=g)) for shape in ((500, 2), (16, 8))]
+
+
+def _optimizer(params, **options) -> torch.optim.Adam:
+    groups = [{"params": params[:1], "weight_decay": 0.0}, {"params": params[1:]}]
+    return torch.optim.Adam(groups, lr=0.01, betas=(0.9, 0.99), eps=1e-15, **options)
+
+
+def _set_grads(params, seed: int) -> None:
+    g = torch.Generator().manual_seed(seed)
+    for p in params:
+        p.grad = torch.randn(p.shape, generator=g)
+
+
+@pytest.mark.parametrize("options", [{"fused": True, "weight_decay": 1e-6}, {"amsgrad": True}])
+def test_steps_as_torch_does(options):
+    a, b = _model(), _model()
+    opt_a, opt_b = _optimizer(a, **options), _optimizer(b, **options)
+    for k in range(4):
+        _set_grads(a, k), _set_grads(b, k)
+        assert adam_step.step(opt_a)
+        opt_b.step()
+        for group in (*opt_a.param_groups, *opt_b.param_groups):
+            group["lr"] *= 0.5  # a schedule: each step reads its group's lr
+    for p, q in zip(a, b, strict=True):
+        torch.testing.assert_close(p, q, rtol=0, atol=0)
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            torch.testing.assert_close(opt_a.state[p][key], opt_b.state[q][key], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_a_non_finite_gradient_changes_nothing(bad):
+    params = _model()
+    opt = _optimizer(params, fused=True)
+    _set_grads(params, 0)
+    assert adam_step.step(opt)
+    before = [p.detach().clone() for p in params]
+    state = {k: v.clone() for k, v in opt.state[params[0]].items()}
+    _set_grads(params, 1)
+    params[1].grad[3, 4] = bad
+    assert not adam_step.step(opt)
+    assert all(torch.equal(p, q) for p, q in zip(params, before, strict=True))
+    assert all(torch.equal(opt.state[params[0]][k], v) for k, v in state.items())
+    _set_grads(params, 2)  # the next finite step goes on from there
+    assert adam_step.step(opt) and not torch.equal(params[0], before[0])
