@@ -103,6 +103,8 @@ def _gather(images, alpha, poses, cameras, camera_index, which, u, v, bg) -> Ray
 def whole_rays(rays: RayBatch, s: Samples, batch_samples: int) -> tuple[RayBatch, Samples]:
     """The first rays of a marched batch whose samples fit in ``batch_samples`` (whole rays,
     at least one)."""
+    if s.n <= batch_samples:
+        return rays, s  # all of them (the common case: no cumulative sums)
     cum = torch.cumsum(s.counts, 0)
     keep = max(int(torch.searchsorted(cum, torch.tensor(batch_samples), right=True)), 1)
     if keep < rays.origins.shape[0]:

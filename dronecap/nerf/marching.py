@@ -131,6 +131,9 @@ def tiles(s: Samples, tile_samples: int) -> Iterator[tuple[int, int, Samples]]:
         (first ray, one past the last ray, the run's samples with ray indices from 0).
     """
     n_rays = s.counts.shape[0]
+    if s.n <= tile_samples:  # one tile (the default batch): no bounds to find
+        yield 0, n_rays, s
+        return
     start = torch.cumsum(s.counts, 0) - s.counts  # first sample of each ray
     tile_of_ray = torch.div(start, max(tile_samples, 1), rounding_mode="floor")
     bounds = torch.searchsorted(tile_of_ray, torch.unique(tile_of_ray)).tolist() + [n_rays]

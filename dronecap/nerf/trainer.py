@@ -255,7 +255,8 @@ class Trainer:
         for i, group in enumerate(self.optimizer.param_groups):
             group["lr"] = lr * (self.cfg.photometric_lr_ratio if i == PHOTOMETRIC_GROUP else 1.0)
         rays, s = self._march_batch()
-        self.optimizer.zero_grad()  # None: the backward hands its gradients over, no sums
+        for p in self._parameters():  # None: the backward hands its gradients over, no sums
+            p.grad = None
         loss = self.accumulate_gradients(rays, s)
         ok = math.isfinite(loss) and adam_step.step(self.optimizer)  # not with inf/NaN gradients
         if ok:
