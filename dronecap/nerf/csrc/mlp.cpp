@@ -52,6 +52,26 @@ inline v16 vload(const float* p) {
   return v;
 }
 inline void vstore(float* p, v16 v) { std::memcpy(p, &v, sizeof(v)); }
+
+// exp of 16 floats to ~1 ulp: x = n ln2 + r with |r| <= ln2 / 2, exp(r) by its Taylor series to
+// r^7 (relative error < 6e-9), times 2^n through the exponent bits. Above ln(FLT_MAX) the result
+// is inf (as std::exp overflows: a sigmoid then saturates to exactly 0), between 88.3 and that
+// exp(88.3), below -87.3 exp(-87.3) (no denormals); NaN stays NaN.
+inline v16 vexp(v16 x0) {
+  typedef int32_t i16 __attribute__((vector_size(64)));
+  const v16 zero = {};
+  v16 x = x0 > 88.3f ? zero + 88.3f : x0;
+  x = x < -87.3f ? zero - 87.3f : x;
+  const v16 magic = zero + 12582912.0f;  // 1.5 * 2^23: adding it rounds to an integer
+  const v16 n = (x * 1.44269504f + magic) - magic;
+  const v16 r = (x - n * 0.693359375f) - n * -2.12194440e-4f;
+  v16 p = zero + 1.0f / 5040;
+  for (const float k : {1.0f / 720, 1.0f / 120, 1.0f / 24, 1.0f / 6, 0.5f, 1.0f, 1.0f}) p = p * r + k;
+  const i16 bits = (__builtin_convertvector(n, i16) + 127) << 23;
+  v16 scale;
+  std::memcpy(&scale, &bits, sizeof(scale));
+  return x0 > 88.7228f ? zero + INFINITY : p * scale;
+}
 inline int pad16(int n) { return (n + kW - 1) / kW * kW; }
 
 // What a product does with its result before storing it.
@@ -375,10 +395,20 @@ void stop(Bf16Work& t) {
 struct Outputs {
   float *rgb, *sigma, *logit;  // [N, C], [N], [N]
   float lim;
-  void put(const Dims& d, int64_t i, float g0, const float* c) const {
-    logit[i] = g0;
-    sigma[i] = std::exp(std::fmin(std::fmax(g0, -lim), lim));
-    for (int k = 0; k < d.C; ++k) rgb[i * d.C + k] = 1.0f / (1.0f + std::exp(-c[k]));
+
+  // Rows [n0, n0 + m) from a tile's density logits g[p * ldg] and colour logits c [kTile, Cp].
+  void put(const Dims& d, int64_t n0, int m, const float* g, int ldg, const float* c) const {
+    for (int p0 = 0; p0 < m; p0 += kW) {
+      v16 x = {};
+      for (int p = p0; p < std::min(m, p0 + kW); ++p) logit[n0 + p] = x[p - p0] = g[p * ldg];
+      x = x > lim ? v16{} + lim : x;  // NaN stays NaN
+      const v16 y = vexp(x < -lim ? v16{} - lim : x);
+      std::memcpy(sigma + n0 + p0, &y, std::min(m - p0, kW) * 4);
+    }
+    for (int p = 0; p < m; ++p) {
+      const v16 y = 1.0f / (1.0f + vexp(-vload(c + p * d.Cp)));
+      std::memcpy(rgb + (n0 + p) * d.C, &y, d.C * 4);
+    }
   }
 };
 
@@ -400,7 +430,7 @@ void forward_rows(const Dims& d, const Weights& w, const float* e, const float* 
         if constexpr (std::is_same_v<Work, Fp32Work>) return k->t;
         else return *k;
       }();
-      for (int p = 0; p < m; ++p) out.put(d, n0 + p, t.g[p * d.Gp], t.c + p * d.Cp);
+      out.put(d, n0, m, t.g, d.Gp, t.c);
     }
     stop(*k);
   }
