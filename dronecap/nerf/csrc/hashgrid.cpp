@@ -773,25 +773,38 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
   xq.resize(std::max(xq.size(), size_t(n) * 3));
   encoded.resize(std::max(encoded.size(), size_t(n) * out_dim));
   row.resize(std::max(row.size(), size_t(n)));
+  // (other threads of the parallel loops below see these through plain pointers: a
+  // thread_local name would be their own, empty, copy)
+  float *xqp = xq.data(), *encp = encoded.data();
+  int64_t* rowp = row.data();
   std::vector<int64_t> queried;
-  std::vector<float> raw;
+  std::vector<float> tau;
+  const int nt = at::get_num_threads();
   for (int64_t round = kVisibleRound, base = 0; !active.empty(); round *= 2) {
     queried.clear();
     for (const int64_t r : active)
       for (int64_t i = next[r]; i < std::min(next[r] + round, begin[r + 1]); ++i)
         queried.push_back(i);
     const int64_t m = int64_t(queried.size());
-    raw.resize(m);
+    tau.resize(m);
+#pragma omp parallel for schedule(static) num_threads(nt) if (m > 2048)
     for (int64_t j = 0; j < m; ++j) {
       const int64_t i = queried[j], r = rip[i];
       const float mid = 0.5f * (t0p[i] + t1p[i]);
-      float* x = xq.data() + 3 * (base + j);
+      float* x = xqp + 3 * (base + j);
       for (int k = 0; k < 3; ++k) x[k] = (op[3 * r + k] + dp[3 * r + k] * mid - lo[k]) / size[k];
-      row[i] = base + j;
+      rowp[i] = base + j;
     }
-    query(xq.data() + 3 * base, m, raw.data(), encoded.data() + base * out_dim);
+    query(xqp + 3 * base, m, tau.data(), encp + base * out_dim);
+    // each sample's optical thickness from its raw density (in place)
+#pragma omp parallel for schedule(static) num_threads(nt) if (m > 2048)
+    for (int64_t j = 0; j < m; ++j) {
+      const int64_t i = queried[j];
+      const float raw = tau[j];
+      const float t = std::exp(std::fmin(std::fmax(raw, -lim), lim)) * (t1p[i] - t0p[i]);
+      tau[j] = std::isnan(t) || std::isnan(raw) ? 0.0f : std::fmin(std::fmax(t, 0.0f), 1e4f);
+    }
     base += m;
-    const float* rp = raw.data();
     int64_t j = 0, still = 0;
     for (const int64_t r : active) {
       const int64_t stop = std::min(next[r] + round, begin[r + 1]);
@@ -799,28 +812,28 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
       for (int64_t i = next[r]; i < stop; ++i, ++j) {
         if (cut) continue;
         if (before[r] >= most) { cut = true; continue; }
-        float tau = std::exp(std::fmin(std::fmax(rp[j], -lim), lim)) * (t1p[i] - t0p[i]);
-        tau = std::isnan(tau) || std::isnan(rp[j]) ? 0.0f : std::fmin(std::fmax(tau, 0.0f), 1e4f);
-        before[r] += double(tau);
+        before[r] += double(tau[j]);
         next[r] = i + 1;
       }
       if (!cut && before[r] < most && next[r] < begin[r + 1]) active[still++] = r;
     }
     active.resize(still);
   }
-  // kept: each ray's samples before its cut (next[r]), in order
-  int64_t k = 0;
-  for (int64_t r = 0; r < rays; ++r) k += next[r] - begin[r];
+  // kept: each ray's samples before its cut (next[r]), in order; out[r] its first kept row
+  std::vector<int64_t> out(rays + 1, 0);
+  for (int64_t r = 0; r < rays; ++r) out[r + 1] = out[r] + next[r] - begin[r];
+  const int64_t k = out[rays];
   auto idx = torch::empty({k}, ray_indices.options());
   auto kept = torch::empty({k, out_dim}, t0.options());
   auto unit = torch::empty({k, 3}, t0.options());
   int64_t* ip = idx.data_ptr<int64_t>();
   float *kp = kept.data_ptr<float>(), *up = unit.data_ptr<float>();
-  for (int64_t r = 0, j = 0; r < rays; ++r)
-    for (int64_t i = begin[r]; i < next[r]; ++i, ++j) {
+#pragma omp parallel for schedule(static) num_threads(nt) if (k > 2048)
+  for (int64_t r = 0; r < rays; ++r)
+    for (int64_t i = begin[r], j = out[r]; i < next[r]; ++i, ++j) {
       ip[j] = i;
-      std::memcpy(kp + j * out_dim, encoded.data() + row[i] * out_dim, out_dim * 4);
-      std::memcpy(up + 3 * j, xq.data() + 3 * row[i], 12);
+      std::memcpy(kp + j * out_dim, encp + rowp[i] * out_dim, out_dim * 4);
+      std::memcpy(up + 3 * j, xqp + 3 * rowp[i], 12);
     }
   return {idx, kept, unit};
 }
