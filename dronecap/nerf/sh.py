@@ -15,7 +15,7 @@ def sh_dim(degree: int) -> int:
     return degree * degree
 
 
-def sh_encode(dirs: Tensor, degree: int = 4, backend: str = "auto") -> Tensor:
+def sh_encode(dirs: Tensor, degree: int = 4, backend: str = "torch") -> Tensor:
     """Real SH basis (bands 0..degree-1) evaluated at unit directions.
 
     Args:
@@ -23,7 +23,7 @@ def sh_encode(dirs: Tensor, degree: int = 4, backend: str = "auto") -> Tensor:
         degree: number of bands, 1..4.
         backend: ``nerf.backend``'s rule for the marching kernel, whose ``sh_encode`` takes
             float32 CPU directions without autograd in one call (the same values; ~45 tensor
-            ops here).
+            ops here); the default is this PyTorch code (the field passes its own backend).
 
     Returns:
         [N, degree**2] coefficients, same dtype as ``dirs``.
