@@ -31,16 +31,16 @@ def step(optimizer: torch.optim.Adam) -> bool:
     torch._amp_foreach_non_finite_check_and_unscale_(grads, found, _ONE.to(found.device))
     if float(found) != 0.0:
         return False
-    seen = all(p in optimizer.state for ps in groups for p in ps)
+    seen = all("step" in optimizer.state.get(p, {}) for ps in groups for p in ps)
     if not (seen and all(_plain(g) for g in optimizer.param_groups)):
         optimizer.step()  # torch creates the state of parameters it has not seen
         return True
+    _count_step(optimizer, [optimizer.state[p] for ps in groups for p in ps])
     for group, params in zip(optimizer.param_groups, groups, strict=True):
         if not params:
             continue
         states = [optimizer.state[p] for p in params]
         steps = [s["step"] for s in states]
-        torch._foreach_add_(steps, 1)
         beta1, beta2 = group["betas"]
         torch._fused_adam_(
             params, [p.grad for p in params], [s["exp_avg"] for s in states],
@@ -55,3 +55,23 @@ def _plain(group: dict) -> bool:
     """Whether a parameter group is a fused Adam's without the options the direct path omits."""
     off = ("amsgrad", "maximize", "capturable", "differentiable", "decoupled_weight_decay")
     return bool(group.get("fused")) and not any(group.get(k) for k in off)
+
+
+def _count_step(optimizer: torch.optim.Adam, stepping: list[dict]) -> None:
+    """Add 1 to the step count in each of the ``stepping`` parameters' states. While every
+    parameter of ``optimizer`` steps, and their counts are equal, they share one count tensor
+    (linked here on first sight, e.g. after a checkpoint load copied them apart), so that this
+    is one scalar op instead of one per parameter; a step that leaves some out separates
+    them again."""
+    states = [optimizer.state.get(p, {}) for g in optimizer.param_groups for p in g["params"]]
+    first = stepping[0]["step"]
+    if len(stepping) == len(states) and all(torch.equal(s["step"], first) for s in stepping):
+        for st in stepping:
+            st["step"] = first
+        first.add_(1)
+        return
+    if len({id(st["step"]) for st in states if "step" in st}) < len(states):
+        for st in states:  # some sit this step out: each its own count again
+            if "step" in st:
+                st["step"] = st["step"].clone()
+    torch._foreach_add_([st["step"] for st in stepping], 1)

@@ -53,3 +53,20 @@ def test_a_non_finite_gradient_changes_nothing(bad):
     assert all(torch.equal(opt.state[params[0]][k], v) for k, v in state.items())
     _set_grads(params, 2)  # the next finite step goes on from there
     assert adam_step.step(opt) and not torch.equal(params[0], before[0])
+
+
+def test_counts_stay_per_parameter_through_skips_and_checkpoints():
+    a, b = _model(), _model()
+    opt_a, opt_b = _optimizer(a, fused=True), _optimizer(b, fused=True)
+    for k in range(5):
+        _set_grads(a, k), _set_grads(b, k)
+        if k == 2:  # the second parameter sits out a step: its count falls behind
+            a[1].grad = b[1].grad = None
+        if k == 3:  # a checkpoint: the state is copied out and back
+            opt_a.load_state_dict(opt_a.state_dict())
+        assert adam_step.step(opt_a)
+        opt_b.step()
+    for p, q in zip(a, b, strict=True):
+        torch.testing.assert_close(p, q, rtol=0, atol=0)
+        assert float(opt_a.state[p]["step"]) == float(opt_b.state[q]["step"])
+    assert [float(opt_a.state[p]["step"]) for p in a] == [5.0, 4.0]
