@@ -298,8 +298,8 @@ class _CppEncode(torch.autograd.Function):
         ctx.save_for_backward(x)
         ctx.args = (table.shape[0], table.shape[1], resolutions, offsets, log2_hashmap, mode)
         ctx.grad_into = grad_into
-        if cached is not None:  # computed earlier from the same x and table
-            return cached.clone()
+        if cached is not None:  # computed earlier from the same x and table (no copy: autograd
+            return cached  # makes the output its own tensor over the same memory)
         return ext.forward(x, table.contiguous(), resolutions, offsets, log2_hashmap)
 
     @staticmethod
@@ -311,9 +311,9 @@ class _CppEncode(torch.autograd.Function):
             leaf = ctx.grad_into
             if leaf is None:
                 grad = ext.backward(grad_out, x, _EMPTY, *ctx.args)
+            elif leaf.grad is None:  # the kernel zeroes the new gradient level by level itself
+                leaf.grad = ext.backward(grad_out, x, _EMPTY, *ctx.args)
             else:
-                if leaf.grad is None:
-                    leaf.grad = torch.zeros_like(leaf, memory_format=torch.contiguous_format)
                 ext.backward(grad_out, x, leaf.grad, *ctx.args)
         return None, grad, None, None, None, None, None, None
 
