@@ -138,3 +138,24 @@ def test_composite_of_no_samples_is_the_background():
     assert torch.equal(out, bg.detach())
     out.sum().backward()
     assert torch.equal(bg.grad, torch.ones(4, 3))
+
+
+@pytest.mark.skipif(kernel("march", "auto") is None, reason="C++ kernel unavailable")
+def test_composite_on_two_threads_is_the_one_thread_result():
+    counts = [5, 0, 1, 40, 7, 0, 3] * 150  # 8400 samples: the kernel splits them by rays
+    sigma, rgb, t0, t1, ri, bg = _packed(counts)
+    results = []
+    before = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            s, c, b = (x.clone().requires_grad_() for x in (sigma, rgb, bg))
+            out = composite(t0, t1, ri, len(counts), lambda a, e, r, s=s, c=c: (c, s), b)
+            (out * torch.linspace(-1, 1, out.numel()).reshape(out.shape)).sum().backward()
+            results.append([out.detach(), s.grad, c.grad, b.grad])
+    finally:
+        torch.set_num_threads(before)
+    for one, two in zip(*results, strict=True):
+        assert torch.equal(one, two)
+    with pytest.raises(RuntimeError, match="non-decreasing"):
+        composite(t0, t1, ri.flip(0), len(counts), lambda a, e, r: (rgb, sigma), bg)

@@ -172,6 +172,21 @@ void check_composite(const torch::Tensor& sigma, const torch::Tensor& rgb, const
   }
 }
 
+// Checks that ray indices ri [s] are non-decreasing indices of r rays, and splits the samples
+// into `parts` runs of whole rays (bounds [parts + 1]), so that threads own disjoint rays.
+std::vector<int64_t> ray_runs(const int64_t* ri, int64_t s, int64_t r, int parts) {
+  for (int64_t i = 0; i < s; ++i)
+    TORCH_CHECK(ri[i] >= 0 && ri[i] < r && (i == 0 || ri[i] >= ri[i - 1]),
+                "ray indices must be non-decreasing and in range");
+  std::vector<int64_t> bounds(parts + 1, s);
+  for (int b = 0; b < parts; ++b) {
+    int64_t i = s * b / parts;
+    while (i > 0 && i < s && ri[i] == ri[i - 1]) ++i;  // to the start of the next ray
+    bounds[b] = std::max(i, b > 0 ? bounds[b - 1] : int64_t(0));
+  }
+  return bounds;
+}
+
 }  // namespace
 
 // Ray colours [R, C] = sum_i w_i rgb_i + (1 - sum_i w_i) bg of packed samples (sigma [S],
@@ -187,16 +202,20 @@ torch::Tensor composite_forward(torch::Tensor sigma, torch::Tensor rgb, torch::T
   const float *ap = t0.data_ptr<float>(), *bp = t1.data_ptr<float>(), *gp = bg.data_ptr<float>();
   const int64_t* rp = ri.data_ptr<int64_t>();
   float* out = acc.data_ptr<float>();
-  double before = 0.0;
-  for (int64_t i = 0; i < s; ++i) {
-    if (i == 0 || rp[i] != rp[i - 1]) before = 0.0;
-    TORCH_CHECK(rp[i] >= 0 && rp[i] < r, "ray index out of range");
-    bool live;
-    const float tau = thickness(sp[i], bp[i] - ap[i], live);
-    const float w = std::exp(-float(before)) * -std::expm1(-tau);
-    for (int64_t k = 0; k < c; ++k) out[rp[i] * c + k] += w * cp[i * c + k];
-    opacity[rp[i]] += w;
-    before += double(tau);
+  const int nt = s > 4096 ? at::get_num_threads() : 1;
+  const std::vector<int64_t> runs = ray_runs(rp, s, r, nt);
+#pragma omp parallel for schedule(static, 1) num_threads(nt)
+  for (int b = 0; b < nt; ++b) {
+    double before = 0.0;
+    for (int64_t i = runs[b]; i < runs[b + 1]; ++i) {
+      if (i == runs[b] || rp[i] != rp[i - 1]) before = 0.0;
+      bool live;
+      const float tau = thickness(sp[i], bp[i] - ap[i], live);
+      const float w = std::exp(-float(before)) * -std::expm1(-tau);
+      for (int64_t k = 0; k < c; ++k) out[rp[i] * c + k] += w * cp[i * c + k];
+      opacity[rp[i]] += w;
+      before += double(tau);
+    }
   }
   for (int64_t j = 0; j < r; ++j)
     for (int64_t k = 0; k < c; ++k) out[j * c + k] += (1.0f - opacity[j]) * gp[j * c + k];
@@ -223,29 +242,34 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor g, torch::Tensor sig
   std::vector<float> w(s), after(s), e(s);  // weight, transmittance behind, (rgb - bg) . g
   std::vector<double> rest(r, 0.0);          // sum of w e over the ray
   std::vector<float> opacity(r, 0.0f);
-  double before = 0.0;
-  for (int64_t i = 0; i < s; ++i) {
-    if (i == 0 || rp[i] != rp[i - 1]) before = 0.0;
-    bool live;
-    const float tau = thickness(sp[i], bp[i] - ap[i], live);
-    w[i] = std::exp(-float(before)) * -std::expm1(-tau);
-    before += double(tau);
-    after[i] = std::exp(-float(before));
-    float dot = 0.0f;
-    for (int64_t k = 0; k < c; ++k) {
-      dot += (cp[i * c + k] - bgp[rp[i] * c + k]) * gp[rp[i] * c + k];
-      dcp[i * c + k] = w[i] * gp[rp[i] * c + k];
+  const int nt = s > 4096 ? at::get_num_threads() : 1;
+  const std::vector<int64_t> runs = ray_runs(rp, s, r, nt);
+#pragma omp parallel for schedule(static, 1) num_threads(nt)
+  for (int b = 0; b < nt; ++b) {
+    double before = 0.0;
+    for (int64_t i = runs[b]; i < runs[b + 1]; ++i) {
+      if (i == runs[b] || rp[i] != rp[i - 1]) before = 0.0;
+      bool live;
+      const float tau = thickness(sp[i], bp[i] - ap[i], live);
+      w[i] = std::exp(-float(before)) * -std::expm1(-tau);
+      before += double(tau);
+      after[i] = std::exp(-float(before));
+      float dot = 0.0f;
+      for (int64_t k = 0; k < c; ++k) {
+        dot += (cp[i * c + k] - bgp[rp[i] * c + k]) * gp[rp[i] * c + k];
+        dcp[i * c + k] = w[i] * gp[rp[i] * c + k];
+      }
+      e[i] = dot;
+      rest[rp[i]] += double(w[i]) * dot;
+      opacity[rp[i]] += w[i];
     }
-    e[i] = dot;
-    rest[rp[i]] += double(w[i]) * dot;
-    opacity[rp[i]] += w[i];
-  }
-  for (int64_t i = 0; i < s; ++i) {  // rest becomes the sum over the ray's later samples
-    rest[rp[i]] -= double(w[i]) * e[i];
-    bool live;
-    thickness(sp[i], bp[i] - ap[i], live);
-    const float d_tau = after[i] * e[i] - float(rest[rp[i]]);
-    dsp[i] = live ? d_tau * (bp[i] - ap[i]) : 0.0f;
+    for (int64_t i = runs[b]; i < runs[b + 1]; ++i) {  // rest: the sum over later samples
+      rest[rp[i]] -= double(w[i]) * e[i];
+      bool live;
+      thickness(sp[i], bp[i] - ap[i], live);
+      const float d_tau = after[i] * e[i] - float(rest[rp[i]]);
+      dsp[i] = live ? d_tau * (bp[i] - ap[i]) : 0.0f;
+    }
   }
   float* dbp = d_bg.data_ptr<float>();
   for (int64_t j = 0; j < r; ++j)
