@@ -69,8 +69,8 @@ def draw_rays(
         bg = torch.rand((n_rays, c), generator=g, device=dev)
     else:
         bg = torch.as_tensor(background, dtype=torch.float32, device=dev).expand(n_rays, c)
-    bytes_ = images.dtype == torch.uint8 and (alpha is None or alpha.dtype == torch.uint8)
-    ext = kernel("march", backend) if dev.type == "cpu" and bytes_ else None
+    uint8 = images.dtype == torch.uint8 and (alpha is None or alpha.dtype == torch.uint8)
+    ext = kernel("march", backend) if dev.type == "cpu" and uint8 else None
     if ext is None:
         return _gather(images, alpha, poses, cameras, camera_index, which, u, v, bg)
     cam = cameras[0]
