@@ -61,13 +61,15 @@ def visible(
     ri = s.ray_indices
     fused = field.visible_samples(origins, dirs, (s.t_starts, s.t_ends, ri), min_transmittance)
     if fused is not None:  # the same samples, in one C++ call
-        keep, encoded, unit = fused
-    else:
-        points = s.midpoints(origins, dirs)
-        sigma, encoded = field.density_and_encoding(points)
-        _, trans = packed_weights(sigma * (s.t_ends - s.t_starts), ri, s.counts.numel())
-        keep = (trans > min_transmittance).nonzero().squeeze(1)
-        encoded, unit = encoded[keep], field.unit(points[keep])
+        k = fused
+        return Samples(
+            k.ray_indices, k.t_starts, k.t_ends, k.counts, encoded=k.encoded, unit=k.unit
+        )
+    points = s.midpoints(origins, dirs)
+    sigma, encoded = field.density_and_encoding(points)
+    _, trans = packed_weights(sigma * (s.t_ends - s.t_starts), ri, s.counts.numel())
+    keep = (trans > min_transmittance).nonzero().squeeze(1)
+    encoded, unit = encoded[keep], field.unit(points[keep])
     ri = ri[keep]
     counts = torch.bincount(ri, minlength=s.counts.numel())
     return Samples(ri, s.t_starts[keep], s.t_ends[keep], counts, encoded=encoded, unit=unit)

@@ -13,7 +13,7 @@ from torch import Tensor, nn
 
 from .config import TrainConfig, mlp_dtype
 from .far_field import make_far_field
-from .hashgrid import HashGrid
+from .hashgrid import HashGrid, Visible
 from .mlp_kernel import amx, field_outputs, usable
 from .sh import sh_dim, sh_encode
 
@@ -193,13 +193,13 @@ class Field(nn.Module):
         dirs: Tensor,
         samples: tuple[Tensor, Tensor, Tensor],
         min_transmittance: float,
-    ) -> tuple[Tensor, Tensor, Tensor] | None:
+    ) -> Visible | None:
         """Compaction's pre-pass fused in C++ (:meth:`HashGrid.fused_visible`): of packed
         samples ``samples`` = (t_starts, t_ends, ray_indices) on rays ``origins``, ``dirs``
-        [R, 3] (scene units), the indices [K] of those whose transmittance is above
-        ``min_transmittance``, their hash encodings [K, levels * features] and their midpoints
-        in the box's unit cube [K, 3] (what was encoded); None when the fused kernels cannot
-        run this field (:meth:`density_and_encoding`'s conditions)."""
+        [R, 3] (scene units), those whose transmittance is above ``min_transmittance``, with
+        their hash encodings and their midpoints in the box's unit cube (what was encoded);
+        None when the fused kernels cannot run this field (:meth:`density_and_encoding`'s
+        conditions)."""
         layers = self._density_rows()
         if layers is None:
             return None

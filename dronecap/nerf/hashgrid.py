@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -108,6 +109,18 @@ class _RoundTo(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # noqa: D102
         return grad, None
+
+
+class Visible(NamedTuple):
+    """The samples compaction's pre-pass keeps (:meth:`HashGrid.fused_visible`), in order."""
+
+    keep: Tensor  # int64 [K] their indices among the samples given
+    ray_indices: Tensor  # int64 [K]
+    t_starts: Tensor  # float32 [K] scene units
+    t_ends: Tensor  # float32 [K]
+    counts: Tensor  # int64 [R] kept samples of each ray
+    encoded: Tensor  # float32 [K, levels * features] their hash encodings
+    unit: Tensor  # float32 [K, 3] their midpoints in the box's unit cube (what was encoded)
 
 
 class HashGrid(torch.nn.Module):
@@ -225,7 +238,7 @@ class HashGrid(torch.nn.Module):
         self, rays: tuple[Tensor, Tensor, Tensor], samples: tuple[Tensor, Tensor, Tensor],
         w1: Tensor, w2: Tensor, max_log_density: float, min_transmittance: float,
         bf16: bool = False,
-    ) -> tuple[Tensor, Tensor, Tensor] | None:  # fmt: skip
+    ) -> Visible | None:  # fmt: skip
         """Compaction's pre-pass in one C++ call (None as :meth:`fused_density`): the density
         exp(clamp(w2 . relu(w1 @ encoding), +-max_log_density)) of packed samples at their
         midpoints, each ray's transmittance before each sample (as
@@ -240,18 +253,16 @@ class HashGrid(torch.nn.Module):
             w1, w2, bf16: as in :meth:`fused_density`.
 
         Returns:
-            (indices [K] int64 of the kept samples, in order; their encodings [K, levels *
-            features]; their midpoints in the unit cube [K, 3], the encoded coordinates).
+            the kept samples (:class:`Visible`), with the kept count of each of the R rays.
         """
         if not self._fusable():
             return None
         origins, dirs, box = (t.detach().float() for t in rays)
         t0, t1, ri = samples
-        keep, encoded, unit = load_extension().visible(
+        return Visible(*load_extension().visible(
             origins, dirs, t0.float(), t1.float(), ri.long(), box, *self._table_args(),
             w1.detach().float(), w2.detach().float(), max_log_density, min_transmittance, bf16,
-        )  # fmt: skip
-        return keep, encoded, unit
+        ))  # fmt: skip
 
     def _fusable(self) -> bool:
         """Whether the fused C++ queries can run: float32 storage and the C++ kernel."""

@@ -184,7 +184,7 @@ def test_the_fused_pre_pass_keeps_the_samples_the_torch_one_keeps():
         for thresh in (1e-4, 0.5):
             a, b = visible(s, o, d, fused, thresh), visible(s, o, d, plain, thresh)
             assert torch.equal(a.ray_indices, b.ray_indices) and torch.equal(a.counts, b.counts)
-            assert torch.equal(a.t_starts, b.t_starts)
+            assert torch.equal(a.t_starts, b.t_starts) and torch.equal(a.t_ends, b.t_ends)
             # the C++ midpoints may round differently from torch's in the last bit
             assert torch.allclose(a.unit, b.unit, rtol=0, atol=1e-6)
             assert torch.allclose(a.encoded, b.encoded, rtol=0, atol=1e-4)
@@ -205,5 +205,6 @@ def test_the_fused_pre_pass_refuses_samples_out_of_ray_order():
         with pytest.raises(RuntimeError, match="non-decreasing indices of the rays"):
             f.visible_samples(o, d, (s.t_starts, s.t_ends, bad), 1e-4)
     empty = torch.zeros(0)
-    keep, enc, unit = f.visible_samples(o, d, (empty, empty, empty.long()), 1e-4)
-    assert keep.numel() == 0 and enc.shape == (0, f.encoding.out_dim) and unit.shape == (0, 3)
+    none = f.visible_samples(o, d, (empty, empty, empty.long()), 1e-4)
+    assert none.keep.numel() == 0 and none.encoded.shape == (0, f.encoding.out_dim)
+    assert none.unit.shape == (0, 3) and torch.equal(none.counts, torch.zeros(4, dtype=torch.long))
