@@ -187,6 +187,30 @@ std::vector<int64_t> ray_runs(const int64_t* ri, int64_t s, int64_t r, int parts
   return bounds;
 }
 
+// Walks the samples of each run of rays (ray_runs), one thread per run, in order along each
+// ray: f(i, w_i, before) with w_i = T_i (1 - exp(-tau_i)) and `before` the optical thickness
+// of the ray up to and including sample i (summed in double).
+template <class F>
+void walk_rays(const float* sigma, const float* t0, const float* t1, const int64_t* ri,
+               const std::vector<int64_t>& runs, F&& f) {
+  const int nt = int(runs.size()) - 1;
+#pragma omp parallel for schedule(static, 1) num_threads(nt)
+  for (int b = 0; b < nt; ++b) {
+    double before = 0.0;
+    for (int64_t i = runs[b]; i < runs[b + 1]; ++i) {
+      if (i == runs[b] || ri[i] != ri[i - 1]) before = 0.0;
+      bool live;
+      const float tau = thickness(sigma[i], t1[i] - t0[i], live);
+      const float w = std::exp(-float(before)) * -std::expm1(-tau);
+      before += double(tau);
+      f(i, w, before);
+    }
+  }
+}
+
+// Threads for compositing s samples: one below 4096 (a parallel region costs more).
+inline int composite_threads(int64_t s) { return s > 4096 ? at::get_num_threads() : 1; }
+
 }  // namespace
 
 // Ray colours [R, C] = sum_i w_i rgb_i + (1 - sum_i w_i) bg of packed samples (sigma [S],
@@ -202,21 +226,11 @@ torch::Tensor composite_forward(torch::Tensor sigma, torch::Tensor rgb, torch::T
   const float *ap = t0.data_ptr<float>(), *bp = t1.data_ptr<float>(), *gp = bg.data_ptr<float>();
   const int64_t* rp = ri.data_ptr<int64_t>();
   float* out = acc.data_ptr<float>();
-  const int nt = s > 4096 ? at::get_num_threads() : 1;
-  const std::vector<int64_t> runs = ray_runs(rp, s, r, nt);
-#pragma omp parallel for schedule(static, 1) num_threads(nt)
-  for (int b = 0; b < nt; ++b) {
-    double before = 0.0;
-    for (int64_t i = runs[b]; i < runs[b + 1]; ++i) {
-      if (i == runs[b] || rp[i] != rp[i - 1]) before = 0.0;
-      bool live;
-      const float tau = thickness(sp[i], bp[i] - ap[i], live);
-      const float w = std::exp(-float(before)) * -std::expm1(-tau);
-      for (int64_t k = 0; k < c; ++k) out[rp[i] * c + k] += w * cp[i * c + k];
-      opacity[rp[i]] += w;
-      before += double(tau);
-    }
-  }
+  walk_rays(sp, ap, bp, rp, ray_runs(rp, s, r, composite_threads(s)),
+            [&](int64_t i, float w, double) {
+              for (int64_t k = 0; k < c; ++k) out[rp[i] * c + k] += w * cp[i * c + k];
+              opacity[rp[i]] += w;
+            });
   for (int64_t j = 0; j < r; ++j)
     for (int64_t k = 0; k < c; ++k) out[j * c + k] += (1.0f - opacity[j]) * gp[j * c + k];
   return acc;
@@ -242,34 +256,27 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor g, torch::Tensor sig
   std::vector<float> w(s), after(s), e(s);  // weight, transmittance behind, (rgb - bg) . g
   std::vector<double> rest(r, 0.0);          // sum of w e over the ray
   std::vector<float> opacity(r, 0.0f);
-  const int nt = s > 4096 ? at::get_num_threads() : 1;
-  const std::vector<int64_t> runs = ray_runs(rp, s, r, nt);
-#pragma omp parallel for schedule(static, 1) num_threads(nt)
-  for (int b = 0; b < nt; ++b) {
-    double before = 0.0;
-    for (int64_t i = runs[b]; i < runs[b + 1]; ++i) {
-      if (i == runs[b] || rp[i] != rp[i - 1]) before = 0.0;
-      bool live;
-      const float tau = thickness(sp[i], bp[i] - ap[i], live);
-      w[i] = std::exp(-float(before)) * -std::expm1(-tau);
-      before += double(tau);
-      after[i] = std::exp(-float(before));
-      float dot = 0.0f;
-      for (int64_t k = 0; k < c; ++k) {
-        dot += (cp[i * c + k] - bgp[rp[i] * c + k]) * gp[rp[i] * c + k];
-        dcp[i * c + k] = w[i] * gp[rp[i] * c + k];
-      }
-      e[i] = dot;
-      rest[rp[i]] += double(w[i]) * dot;
-      opacity[rp[i]] += w[i];
+  const std::vector<int64_t> runs = ray_runs(rp, s, r, composite_threads(s));
+  walk_rays(sp, ap, bp, rp, runs, [&](int64_t i, float wi, double before) {
+    w[i] = wi;
+    after[i] = std::exp(-float(before));
+    float dot = 0.0f;
+    for (int64_t k = 0; k < c; ++k) {
+      dot += (cp[i * c + k] - bgp[rp[i] * c + k]) * gp[rp[i] * c + k];
+      dcp[i * c + k] = wi * gp[rp[i] * c + k];
     }
-    for (int64_t i = runs[b]; i < runs[b + 1]; ++i) {  // rest: the sum over later samples
-      rest[rp[i]] -= double(w[i]) * e[i];
-      bool live;
-      thickness(sp[i], bp[i] - ap[i], live);
-      const float d_tau = after[i] * e[i] - float(rest[rp[i]]);
-      dsp[i] = live ? d_tau * (bp[i] - ap[i]) : 0.0f;
-    }
+    e[i] = dot;
+    rest[rp[i]] += double(wi) * dot;
+    opacity[rp[i]] += wi;
+  });
+  // rest becomes the sum over the ray's later samples (each ray's samples in order: any
+  // order of the rays, so one pass over all samples)
+  for (int64_t i = 0; i < s; ++i) {
+    rest[rp[i]] -= double(w[i]) * e[i];
+    bool live;
+    thickness(sp[i], bp[i] - ap[i], live);
+    const float d_tau = after[i] * e[i] - float(rest[rp[i]]);
+    dsp[i] = live ? d_tau * (bp[i] - ap[i]) : 0.0f;
   }
   float* dbp = d_bg.data_ptr<float>();
   for (int64_t j = 0; j < r; ++j)
