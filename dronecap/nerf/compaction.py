@@ -59,12 +59,9 @@ def visible(
     if min_transmittance <= 0:
         return s
     ri = s.ray_indices
-    fused = field.visible_samples(origins, dirs, (s.t_starts, s.t_ends, ri), min_transmittance)
-    if fused is not None:  # the same samples, in one C++ call
-        k = fused
-        return Samples(
-            k.ray_indices, k.t_starts, k.t_ends, k.counts, encoded=k.encoded, unit=k.unit
-        )
+    v = field.visible_samples(origins, dirs, (s.t_starts, s.t_ends, ri), min_transmittance)
+    if v is not None:  # the same samples, in one C++ call
+        return Samples(*v[:4], encoded=v.encoded, unit=v.unit)  # ray_indices .. counts
     points = s.midpoints(origins, dirs)
     sigma, encoded = field.density_and_encoding(points)
     _, trans = packed_weights(sigma * (s.t_ends - s.t_starts), ri, s.counts.numel())

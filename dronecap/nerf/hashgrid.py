@@ -114,7 +114,6 @@ class _RoundTo(torch.autograd.Function):
 class Visible(NamedTuple):
     """The samples compaction's pre-pass keeps (:meth:`HashGrid.fused_visible`), in order."""
 
-    keep: Tensor  # int64 [K] their indices among the samples given
     ray_indices: Tensor  # int64 [K]
     t_starts: Tensor  # float32 [K] scene units
     t_ends: Tensor  # float32 [K]

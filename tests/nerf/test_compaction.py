@@ -206,5 +206,5 @@ def test_the_fused_pre_pass_refuses_samples_out_of_ray_order():
             f.visible_samples(o, d, (s.t_starts, s.t_ends, bad), 1e-4)
     empty = torch.zeros(0)
     none = f.visible_samples(o, d, (empty, empty, empty.long()), 1e-4)
-    assert none.keep.numel() == 0 and none.encoded.shape == (0, f.encoding.out_dim)
+    assert none.ray_indices.numel() == 0 and none.encoded.shape == (0, f.encoding.out_dim)
     assert none.unit.shape == (0, 3) and torch.equal(none.counts, torch.zeros(4, dtype=torch.long))

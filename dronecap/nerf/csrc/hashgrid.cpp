@@ -714,9 +714,8 @@ std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
 // A sample is queried at its midpoint mapped to the unit cube of the box (box [2, 3]: its min
 // corner and size): (o + d (t_start + t_end) / 2 - min) / size. Density = exp(raw clamped to
 // +-max_log_density); thickness = density * length, NaN -> 0, clamped to [0, 1e4] (the
-// reference's rules). Returns {kept sample indices int64 [K], their ray indices [K], t_starts
-// [K], t_ends [K], the kept count of each ray int64 [R], their encodings [K, L*F], their
-// unit-cube midpoints [K, 3]} (the training pass encodes exactly these coordinates).
+// reference's rules). Returns the kept samples {ray indices int64 [K], t_starts [K], t_ends
+// [K], the kept count of each ray int64 [R], encodings [K, L*F], unit-cube midpoints [K, 3]} (the training pass encodes exactly these coordinates).
 //
 // The rays march front to back in rounds: each round queries the next samples of every ray
 // still above the threshold (kVisibleRound in the first round, twice as many in each next one:
@@ -824,13 +823,12 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
   std::vector<int64_t> out(rays + 1, 0);
   for (int64_t r = 0; r < rays; ++r) out[r + 1] = out[r] + next[r] - begin[r];
   const int64_t k = out[rays];
-  auto idx = torch::empty({k}, ray_indices.options());
   auto kept_ri = torch::empty({k}, ray_indices.options());
   auto kept_t0 = torch::empty({k}, t0.options()), kept_t1 = torch::empty({k}, t0.options());
   auto counts = torch::zeros({n_rays}, ray_indices.options());
   auto kept = torch::empty({k, out_dim}, t0.options());
   auto unit = torch::empty({k, 3}, t0.options());
-  int64_t *ip = idx.data_ptr<int64_t>(), *kri = kept_ri.data_ptr<int64_t>();
+  int64_t* kri = kept_ri.data_ptr<int64_t>();
   int64_t* cp = counts.data_ptr<int64_t>();
   float *kp = kept.data_ptr<float>(), *up = unit.data_ptr<float>();
   float *k0 = kept_t0.data_ptr<float>(), *k1 = kept_t1.data_ptr<float>();
@@ -838,12 +836,12 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
   for (int64_t r = 0; r < rays; ++r) {
     if (begin[r] < begin[r + 1]) cp[rip[begin[r]]] = next[r] - begin[r];
     for (int64_t i = begin[r], j = out[r]; i < next[r]; ++i, ++j) {
-      ip[j] = i, kri[j] = rip[i], k0[j] = t0p[i], k1[j] = t1p[i];
+      kri[j] = rip[i], k0[j] = t0p[i], k1[j] = t1p[i];
       std::memcpy(kp + j * out_dim, encp + rowp[i] * out_dim, out_dim * 4);
       std::memcpy(up + 3 * j, xqp + 3 * rowp[i], 12);
     }
   }
-  return {idx, kept_ri, kept_t0, kept_t1, counts, kept, unit};
+  return {kept_ri, kept_t0, kept_t1, counts, kept, unit};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -858,7 +856,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::call_guard<py::gil_scoped_release>());
   m.def("visible", &visible_forward,
         "compaction's pre-pass: (origins, dirs, t_starts, t_ends, ray_indices, box, table, ..., "
-        "w1, w2, max_log_density, min_transmittance, bf16) -> (kept indices, their ray indices, "
+        "w1, w2, max_log_density, min_transmittance, bf16) -> the kept samples' (ray indices, "
         "t_starts, t_ends, counts per ray, encodings, unit points)",
         py::call_guard<py::gil_scoped_release>());
   m.def("backward", &hash_backward, "hash encoding backward: scatter-add of grad_out into the table",
