@@ -170,7 +170,7 @@ def test_without_a_pre_pass_the_rays_cut_off_by_the_batch_do_not_count_as_marche
 
 @pytest.mark.skipif(kernel("hashgrid", "auto") is None, reason="C++ hash-grid kernel unavailable")
 def test_the_fused_pre_pass_keeps_the_samples_the_torch_one_keeps():
-    o, d = _rays(40)
+    o, d = _rays(100)  # ~10k samples: several chunks of rays, over the threads
     tn, tf, _ = ray_aabb(o, d, BOX)
     s = march(o, d, tn, tf, 0.02, None, BOX, 1000)
     for scale in (0.0, 1.0, 3.0, 30.0):  # empty, foggy, opaque, past the density clamp
@@ -188,6 +188,15 @@ def test_the_fused_pre_pass_keeps_the_samples_the_torch_one_keeps():
             # the C++ midpoints may round differently from torch's in the last bit
             assert torch.allclose(a.unit, b.unit, rtol=0, atol=1e-6)
             assert torch.allclose(a.encoded, b.encoded, rtol=0, atol=1e-4)
+            threads = torch.get_num_threads()
+            torch.set_num_threads(1)  # one thread marches every chunk of rays: the same samples
+            try:
+                one = visible(s, o, d, fused, thresh)
+            finally:
+                torch.set_num_threads(threads)
+            assert torch.equal(one.ray_indices, a.ray_indices) and torch.equal(
+                one.encoded, a.encoded
+            )
         kept = visible(s, o, d, fused, 1e-4).n
         if scale == 0.0:
             assert kept == s.n  # density exp(0) = 1 per unit over ~2 units of ray: all kept

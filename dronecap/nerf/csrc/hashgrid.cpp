@@ -656,38 +656,57 @@ struct DensityQuery {
   }
 
   // Raw densities rp [n] of the points xp [n, 3] and, when `ep` is not null, their encodings
-  // ep [n, L*F].
+  // ep [n, L*F]; blocks of points split over the threads.
   void operator()(const float* xp, int64_t n, float* rp, float* ep) const {
-    const int64_t blocks = (n + kFuseBlock - 1) / kFuseBlock, nl = int64_t(levels.size());
+    const int64_t blocks = (n + kFuseBlock - 1) / kFuseBlock;
 #pragma omp parallel num_threads(std::min<int64_t>(at::get_num_threads(), blocks))
     {
       std::vector<float> scratch(ep ? 0 : kFuseBlock * out_dim);
-#ifdef DRONECAP_AMX
-      if (!w1_tiles.empty()) amx::begin();
-#endif
+      begin();
 #pragma omp for schedule(static)
       for (int64_t b = 0; b < blocks; ++b) {
         const int64_t n0 = b * kFuseBlock, m = std::min(n, n0 + kFuseBlock) - n0;
-        float* e = ep ? ep + n0 * out_dim : scratch.data();
-        for (int64_t l = 0; l < nl; ++l) {
-          DISPATCH_F(nf, forward_range, xp + 3 * n0, tp, e, 0, m, levels[l], l, out_dim, nf);
-        }
-#ifdef DRONECAP_AMX
-        if (!w1_tiles.empty()) {
-          density_rows_amx(e, m, out_dim, w1_tiles.data(), w2p, hidden, rp + n0);
-          continue;
-        }
-#endif
-        int64_t done = 0;
-#if defined(HG_AVX512) || defined(HG_AVX2)
-        if (hidden == 64) done = density_rows64(e, m, out_dim, w1p, w2p, rp + n0);
-#endif
-        density_rows(e + done * out_dim, m - done, out_dim, w1p, w2p, hidden, rp + n0 + done);
+        block(xp + 3 * n0, m, rp + n0, ep ? ep + n0 * out_dim : scratch.data());
       }
-#ifdef DRONECAP_AMX
-      if (!w1_tiles.empty()) amx::end();
-#endif
+      end();
     }
+  }
+
+  // The same on the calling thread alone, between its begin() and end(), into encodings ep.
+  void serial(const float* xp, int64_t n, float* rp, float* ep) const {
+    for (int64_t n0 = 0; n0 < n; n0 += kFuseBlock)
+      block(xp + 3 * n0, std::min(n - n0, kFuseBlock), rp + n0, ep + n0 * out_dim);
+  }
+
+  // A thread's tile state for the AMX products (nothing without them).
+  void begin() const {
+#ifdef DRONECAP_AMX
+    if (!w1_tiles.empty()) amx::begin();
+#endif
+  }
+  void end() const {
+#ifdef DRONECAP_AMX
+    if (!w1_tiles.empty()) amx::end();
+#endif
+  }
+
+ private:
+  // At most kFuseBlock points: encoded into e, then through the MLP.
+  void block(const float* xp, int64_t m, float* rp, float* e) const {
+    for (int64_t l = 0; l < int64_t(levels.size()); ++l) {
+      DISPATCH_F(nf, forward_range, xp, tp, e, 0, m, levels[l], l, out_dim, nf);
+    }
+#ifdef DRONECAP_AMX
+    if (!w1_tiles.empty()) {
+      density_rows_amx(e, m, out_dim, w1_tiles.data(), w2p, hidden, rp);
+      return;
+    }
+#endif
+    int64_t done = 0;
+#if defined(HG_AVX512) || defined(HG_AVX2)
+    if (hidden == 64) done = density_rows64(e, m, out_dim, w1p, w2p, rp);
+#endif
+    density_rows(e + done * out_dim, m - done, out_dim, w1p, w2p, hidden, rp + done);
   }
 };
 
@@ -723,6 +742,7 @@ std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
 // it. Samples behind a ray's cut (about 60 % of a step's marched samples on lego) are then mostly
 // never encoded; what is kept is exactly what querying every sample would keep.
 constexpr int64_t kVisibleRound = 4;
+constexpr int64_t kVisibleChunk = 4096;  // samples per chunk of rays (a thread's work item)
 
 std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor dirs,
                                            torch::Tensor t_starts, torch::Tensor t_ends,
@@ -758,16 +778,13 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
   const int64_t rays = int64_t(begin.size());
   begin.push_back(n);
   std::vector<int64_t> next(begin.begin(), begin.end() - 1);  // each ray's first unqueried sample
-  std::vector<double> before(rays, 0.0);  // optical thickness of the ray's samples so far
-  std::vector<int64_t> active(rays);
-  for (int64_t r = 0; r < rays; ++r) active[r] = r;
   const float lim = float(max_log_density);
   // transmittance exp(-before) > min_transmittance, as a bound on the thickness (no exp)
   const double most = min_transmittance > 0 ? -std::log(min_transmittance) : INFINITY;
   const DensityQuery query(table, resolutions, offsets, log2_hashmap, w1, w2, bf16);
-  // The queried samples' unit-cube midpoints and encodings, round after round (at most n rows),
-  // and each sample's row there; kept per calling thread from call to call, so that their
-  // pages are not faulted in anew.
+  // The queried samples' unit-cube midpoints and encodings, and each sample's row there (a
+  // sample of a chunk of rays is queried into the rows of that chunk's samples); kept per
+  // calling thread from call to call, so that their pages are not faulted in anew.
   thread_local std::vector<float> xq, encoded;
   thread_local std::vector<int64_t> row;
   xq.resize(std::max(xq.size(), size_t(n) * 3));
@@ -777,47 +794,61 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
   // thread_local name would be their own, empty, copy)
   float *xqp = xq.data(), *encp = encoded.data();
   int64_t* rowp = row.data();
-  std::vector<int64_t> queried;
-  std::vector<float> tau;
-  const int nt = at::get_num_threads();
-  for (int64_t round = kVisibleRound, base = 0; !active.empty(); round *= 2) {
-    queried.clear();
-    for (const int64_t r : active)
-      for (int64_t i = next[r]; i < std::min(next[r] + round, begin[r + 1]); ++i)
-        queried.push_back(i);
-    const int64_t m = int64_t(queried.size());
-    tau.resize(m);
-#pragma omp parallel for schedule(static) num_threads(nt) if (m > 2048)
-    for (int64_t j = 0; j < m; ++j) {
-      const int64_t i = queried[j], r = rip[i];
-      const float mid = 0.5f * (t0p[i] + t1p[i]);
-      float* x = xqp + 3 * (base + j);
-      for (int k = 0; k < 3; ++k) x[k] = (op[3 * r + k] + dp[3 * r + k] * mid - lo[k]) / size[k];
-      rowp[i] = base + j;
-    }
-    query(xqp + 3 * base, m, tau.data(), encp + base * out_dim);
-    // each sample's optical thickness from its raw density (in place)
-#pragma omp parallel for schedule(static) num_threads(nt) if (m > 2048)
-    for (int64_t j = 0; j < m; ++j) {
-      const int64_t i = queried[j];
-      const float raw = tau[j];
-      const float t = std::exp(std::fmin(std::fmax(raw, -lim), lim)) * (t1p[i] - t0p[i]);
-      tau[j] = std::isnan(t) || std::isnan(raw) ? 0.0f : std::fmin(std::fmax(t, 0.0f), 1e4f);
-    }
-    base += m;
-    int64_t j = 0, still = 0;
-    for (const int64_t r : active) {
-      const int64_t stop = std::min(next[r] + round, begin[r + 1]);
-      bool cut = false;
-      for (int64_t i = next[r]; i < stop; ++i, ++j) {
-        if (cut) continue;
-        if (before[r] >= most) { cut = true; continue; }
-        before[r] += double(tau[j]);
-        next[r] = i + 1;
+  // Chunks of rays holding about kVisibleChunk samples each march their rounds on one thread,
+  // independently of the others: no serial step and no barrier between rounds.
+  std::vector<int64_t> chunk{0};
+  for (int64_t r = 1; r < rays; ++r)
+    if (begin[r] - begin[chunk.back()] >= kVisibleChunk) chunk.push_back(r);
+  chunk.push_back(rays);
+  const int64_t chunks = int64_t(chunk.size()) - 1;
+#pragma omp parallel num_threads(std::min<int64_t>(at::get_num_threads(), chunks))
+  {
+    query.begin();
+    std::vector<int64_t> active, queried;
+    std::vector<float> tau;
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t c = 0; c < chunks; ++c) {
+      active.clear();
+      for (int64_t r = chunk[c]; r < chunk[c + 1]; ++r) active.push_back(r);
+      std::vector<double> before(active.size(), 0.0);  // optical thickness so far, per ray
+      const int64_t r0 = chunk[c];
+      for (int64_t round = kVisibleRound, base = begin[r0]; !active.empty(); round *= 2) {
+        queried.clear();
+        for (const int64_t r : active)
+          for (int64_t i = next[r]; i < std::min(next[r] + round, begin[r + 1]); ++i)
+            queried.push_back(i);
+        const int64_t m = int64_t(queried.size());
+        for (int64_t j = 0; j < m; ++j) {
+          const int64_t i = queried[j], r = rip[i];
+          const float mid = 0.5f * (t0p[i] + t1p[i]);
+          float* x = xqp + 3 * (base + j);
+          for (int k = 0; k < 3; ++k)
+            x[k] = (op[3 * r + k] + dp[3 * r + k] * mid - lo[k]) / size[k];
+          rowp[i] = base + j;
+        }
+        tau.resize(m);
+        query.serial(xqp + 3 * base, m, tau.data(), encp + base * out_dim);
+        base += m;
+        int64_t j = 0, still = 0;
+        for (const int64_t r : active) {
+          const int64_t stop = std::min(next[r] + round, begin[r + 1]);
+          double& b = before[r - r0];
+          bool cut = false;
+          for (int64_t i = next[r]; i < stop; ++i, ++j) {
+            if (cut) continue;
+            if (b >= most) { cut = true; continue; }
+            // the sample's optical thickness from its raw density
+            const float raw = tau[j];
+            const float t = std::exp(std::fmin(std::fmax(raw, -lim), lim)) * (t1p[i] - t0p[i]);
+            b += std::isnan(t) || std::isnan(raw) ? 0.0 : double(std::fmin(std::fmax(t, 0.0f), 1e4f));
+            next[r] = i + 1;
+          }
+          if (!cut && b < most && next[r] < begin[r + 1]) active[still++] = r;
+        }
+        active.resize(still);
       }
-      if (!cut && before[r] < most && next[r] < begin[r + 1]) active[still++] = r;
     }
-    active.resize(still);
+    query.end();
   }
   // kept: each ray's samples before its cut (next[r]), in order; out[r] its first kept row
   std::vector<int64_t> out(rays + 1, 0);
@@ -832,7 +863,7 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
   int64_t* cp = counts.data_ptr<int64_t>();
   float *kp = kept.data_ptr<float>(), *up = unit.data_ptr<float>();
   float *k0 = kept_t0.data_ptr<float>(), *k1 = kept_t1.data_ptr<float>();
-#pragma omp parallel for schedule(static) num_threads(nt) if (k > 2048)
+#pragma omp parallel for schedule(static) num_threads(at::get_num_threads()) if (k > 2048)
   for (int64_t r = 0; r < rays; ++r) {
     if (begin[r] < begin[r + 1]) cp[rip[begin[r]]] = next[r] - begin[r];
     for (int64_t i = begin[r], j = out[r]; i < next[r]; ++i, ++j) {
