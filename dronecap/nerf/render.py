@@ -73,7 +73,7 @@ def render_rays(
     """
     field = vol.field
     n, c, dev = origins.shape[0], field.channels, origins.device
-    t_near, t_far, hit = ray_aabb(origins, dirs, vol.aabb)
+    t_near, t_far, hit = ray_aabb(origins, dirs, vol.aabb, field.encoding.backend)
     dir_enc = field.dir_encoding(dirs)  # [R, 16]: once per ray, gathered per sample
     rgb = torch.zeros(n, c, device=dev)
     trans = torch.ones(n, device=dev)

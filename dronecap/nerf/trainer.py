@@ -177,9 +177,9 @@ class Trainer:
         B to train on, at most MARCH_CAP x B marched (``batch_counts`` "trained"), or at most B
         marched, less those compaction drops ("marched")."""
         cfg = self.cfg
-        n_rays = int(np.clip(cfg.batch_samples / self.samples_per_ray, 16, cfg.batch_samples))
+        n_rays = int(min(max(cfg.batch_samples / self.samples_per_ray, 16), cfg.batch_samples))
         rays = self._draw_rays(n_rays)
-        t_near, t_far, _ = ray_aabb(rays.origins, rays.dirs, self.aabb)
+        t_near, t_far, _ = ray_aabb(rays.origins, rays.dirs, self.aabb, self.backend)
         jitter = torch.rand(n_rays, generator=self.generator, device=self.device)
         s = self.march(
             rays.origins, rays.dirs, t_near, t_far, self.step_size, self.grid, self.aabb,
@@ -192,9 +192,11 @@ class Trainer:
         self.samples_per_ray = max((kept if trained else s).n / rays.origins.shape[0], 0.01)
         return rays, kept
 
-    def _render_rays(self, origins, dirs, s: Samples, bg) -> tuple[torch.Tensor, torch.Tensor]:
+    def _render_rays(
+        self, origins, dirs, s: Samples, bg
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Colour [R, C] of rays through the field (with autograd) and each ray's distortion
-        [R] in units of the AABB diagonal (zeros when the ``distortion`` weight is 0)."""
+        [R] in units of the AABB diagonal (None when the ``distortion`` weight is 0)."""
         field = self.field
         dir_enc = field.dir_encoding(dirs)  # once per ray, gathered per sample
 
@@ -207,7 +209,7 @@ class Trainer:
         if self.cfg.distortion <= 0:  # the colour alone
             color = composite(s.t_starts, s.t_ends, s.ray_indices, n_rays, color_sigma, behind,
                               field.encoding.backend)  # fmt: skip
-            return color, color.new_zeros(n_rays)
+            return color, None
         out = render_packed(s.t_starts, s.t_ends, s.ray_indices, n_rays, color_sigma, behind)
         diag = float(torch.linalg.norm(self.aabb[1] - self.aabb[0]))  # t in AABB diagonals
         t0, t1 = s.t_starts / diag, s.t_ends / diag
@@ -228,14 +230,11 @@ class Trainer:
             color, spread = self._render_rays(rays.origins[a:b], rays.dirs[a:b], tile, rays.bg[a:b])
             seen = self.photometric(color, rays.frame[a:b], rays.radius[a:b])
             loss = huber_sum(seen, rays.target[a:b]) / (n_rays * c)
-            loss = loss + self.cfg.distortion * spread.sum() / n_rays
+            if spread is not None:
+                loss = loss + self.cfg.distortion * spread.sum() / n_rays
             loss.backward()
             total += float(loss.detach())
         return total
-
-    def _parameters(self) -> list[torch.nn.Parameter]:
-        """Everything the optimizer trains: the field's and the photometric model's."""
-        return [*self.field.parameters(), *self.photometric.parameters()]
 
     def train_step(self) -> dict:
         """One optimizer step; returns its log {step, loss, psnr, samples, rays, ms, lr,
@@ -255,8 +254,9 @@ class Trainer:
         for i, group in enumerate(self.optimizer.param_groups):
             group["lr"] = lr * (self.cfg.photometric_lr_ratio if i == PHOTOMETRIC_GROUP else 1.0)
         rays, s = self._march_batch()
-        for p in self._parameters():  # None: the backward hands its gradients over, no sums
-            p.grad = None
+        for group in self.optimizer.param_groups:  # None: the backward hands its gradients
+            for p in group["params"]:  # over, no sums
+                p.grad = None
         loss = self.accumulate_gradients(rays, s)
         ok = math.isfinite(loss) and adam_step.step(self.optimizer)  # not with inf/NaN gradients
         if ok:

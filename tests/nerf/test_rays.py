@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from dronecap.camera import Camera
+from dronecap.nerf.backend import kernel
 from dronecap.nerf.rays import camera_rays, ray_aabb
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -67,42 +68,62 @@ def test_rays_through_the_corners_project_back_through_opencv(cam):
         assert np.linalg.norm(uv2.reshape(2) - expected[0]) > 1.0
 
 
-def test_ray_hitting_box_from_outside():
+@pytest.mark.parametrize("backend", ["torch", "auto"])
+def test_ray_hitting_box_from_outside(backend):
     o = torch.tensor([[0.0, 0.0, -5.0]])
     d = torch.tensor([[0.0, 0.0, 1.0]])  # two exact zeros in the direction
-    tn, tf, hit = ray_aabb(o, d, BOX)
+    tn, tf, hit = ray_aabb(o, d, BOX, backend)
     assert hit.item() and tn.item() == 4.0 and tf.item() == 6.0
 
 
-def test_ray_missing_box_has_empty_segment():
+@pytest.mark.parametrize("backend", ["torch", "auto"])
+def test_ray_missing_box_has_empty_segment(backend):
     o = torch.tensor([[0.0, 3.0, -5.0]])
     d = torch.tensor([[0.0, 0.0, 1.0]])
-    tn, tf, hit = ray_aabb(o, d, BOX)
+    tn, tf, hit = ray_aabb(o, d, BOX, backend)
     assert not hit.item() and tf.item() == tn.item()
     assert torch.isfinite(tn).all() and torch.isfinite(tf).all()
 
 
-def test_ray_starting_inside_starts_at_zero():
+@pytest.mark.parametrize("backend", ["torch", "auto"])
+def test_ray_starting_inside_starts_at_zero(backend):
     o = torch.tensor([[0.5, 0.0, 0.0]])
     d = torch.tensor([[1.0, 0.0, 0.0]])
-    tn, tf, hit = ray_aabb(o, d, BOX)
+    tn, tf, hit = ray_aabb(o, d, BOX, backend)
     assert hit.item() and tn.item() == 0.0 and abs(tf.item() - 0.5) < 1e-6
 
 
-def test_ray_pointing_away_from_box_misses():
+@pytest.mark.parametrize("backend", ["torch", "auto"])
+def test_ray_pointing_away_from_box_misses(backend):
     o = torch.tensor([[0.0, 0.0, 5.0]])
     d = torch.tensor([[0.0, 0.0, 1.0]])
-    _, _, hit = ray_aabb(o, d, BOX)
+    _, _, hit = ray_aabb(o, d, BOX, backend)
     assert not hit.item()
 
 
-def test_origin_on_face_and_ray_along_face_stay_finite():
+@pytest.mark.parametrize("backend", ["torch", "auto"])
+def test_origin_on_face_and_ray_along_face_stay_finite(backend):
     o = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, -3.0], [-1.0, -1.0, -1.0]])
     d = torch.tensor([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0]])
     d = d / d.norm(dim=-1, keepdim=True)
-    tn, tf, hit = ray_aabb(o, d, BOX)
+    tn, tf, hit = ray_aabb(o, d, BOX, backend)
     assert torch.isfinite(tn).all() and torch.isfinite(tf).all()
     # on the +x face going inwards: crosses the whole box (length 2)
     assert hit[0] and tn[0] == 0.0 and abs(tf[0].item() - 2.0) < 1e-6
     # from a corner along the diagonal: length 2*sqrt(3)
     assert hit[2] and abs(tf[2].item() - 2 * np.sqrt(3)) < 1e-5
+
+
+@pytest.mark.skipif(kernel("march", "auto") is None, reason="C++ marching kernel unavailable")
+def test_the_kernel_slab_test_gives_the_torch_values_bit_for_bit():
+    g = torch.Generator().manual_seed(3)
+    o = torch.randn(4000, 3, generator=g) * 2
+    d = torch.randn(4000, 3, generator=g)
+    d[::7, 0] = 0.0  # parallel to a slab: inside it or not
+    d[::11, 1] = -0.0
+    d[::13] = d[::13] * 1e-13  # every component below TINY
+    o[5, 2] = float("nan")  # NaN goes through as torch's ops pass it
+    box = torch.tensor([[-1.0, -0.5, -2.0], [1.5, 0.5, 0.25]])
+    for a, b in zip(ray_aabb(o, d, box, "auto"), ray_aabb(o, d, box, "torch"), strict=True):
+        assert a.dtype == b.dtype and torch.equal(a.isnan(), b.isnan())
+        assert torch.equal(a.nan_to_num(), b.nan_to_num())

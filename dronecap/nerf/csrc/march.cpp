@@ -384,6 +384,42 @@ torch::Tensor sh_encode(torch::Tensor dirs, int64_t degree) {
   return out;
 }
 
+// Slab intersection of rays origins [N, 3] + t dirs [N, 3] with the box aabb [2, 3] (min,
+// max): {t_near [N] (>= 0), t_far [N] (t_near where the ray misses), hit bool [N]}, with
+// nerf/rays.py's ray_aabb arithmetic operation by operation (NaN propagates as there).
+std::vector<torch::Tensor> ray_aabb(torch::Tensor origins, torch::Tensor dirs, torch::Tensor aabb) {
+  for (const auto* t : {&origins, &dirs, &aabb})
+    TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->dim() == 2 && t->size(1) == 3,
+                "origins, dirs [N, 3] and aabb [2, 3] must be float32");
+  TORCH_CHECK(dirs.size(0) == origins.size(0) && aabb.size(0) == 2, "shapes differ");
+  const auto o = origins.contiguous(), d = dirs.contiguous(), b = aabb.contiguous();
+  const int64_t n = o.size(0);
+  auto near = torch::empty({n}, o.options()), far = torch::empty({n}, o.options());
+  auto hit = torch::empty({n}, o.options().dtype(torch::kBool));
+  const float *op = o.data_ptr<float>(), *dp = d.data_ptr<float>(), *bp = b.data_ptr<float>();
+  float *np = near.data_ptr<float>(), *fp = far.data_ptr<float>();
+  bool* hp = hit.data_ptr<bool>();
+  // torch.minimum / maximum / amax / amin / clamp_min: NaN wins
+  auto lo = [](float a, float c) { return std::isnan(a) || std::isnan(c) ? NAN : (a < c ? a : c); };
+  auto hi = [](float a, float c) { return std::isnan(a) || std::isnan(c) ? NAN : (a > c ? a : c); };
+  constexpr float kTiny = 1e-12f;  // nerf/rays.py's TINY
+  for (int64_t i = 0; i < n; ++i) {
+    float t_near = -INFINITY, t_far = INFINITY;
+    for (int k = 0; k < 3; ++k) {
+      const float dk = dp[3 * i + k];
+      const float safe = std::fabs(dk) < kTiny ? (dk < 0 ? -kTiny : kTiny) : dk;
+      const float inv = 1.0f / safe;
+      const float t0 = (bp[k] - op[3 * i + k]) * inv, t1 = (bp[3 + k] - op[3 * i + k]) * inv;
+      t_near = hi(t_near, lo(t0, t1));
+      t_far = lo(t_far, hi(t0, t1));
+    }
+    t_near = hi(t_near, 0.0f);
+    hp[i] = t_far > t_near;
+    np[i] = t_near, fp[i] = hp[i] ? t_far : t_near;
+  }
+  return {near, far, hit};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // the GIL is released while the kernel runs: another Python thread can work meanwhile
   m.def("march", &march, "occupancy-grid ray marching into packed samples",
@@ -395,5 +431,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("draw", &draw, "rays and target colours of drawn pixels",
         py::call_guard<py::gil_scoped_release>());
   m.def("sh_encode", &sh_encode, "real SH basis of unit directions",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("ray_aabb", &ray_aabb, "slab intersection of rays with a box",
         py::call_guard<py::gil_scoped_release>());
 }
