@@ -14,7 +14,7 @@ from torch import Tensor, nn
 from .config import TrainConfig, mlp_dtype
 from .far_field import make_far_field
 from .hashgrid import HashGrid, Visible
-from .mlp_kernel import amx, field_outputs, usable
+from .mlp_kernel import amx, field_outputs, mlp_weights, usable
 from .sh import sh_dim, sh_encode
 
 DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
@@ -246,6 +246,14 @@ class Field(nn.Module):
                 self.density_mlp, self.color_mlp, self.encoding.backend
             )
         return self._fused_mlp and (self.product_dtype == torch.float32 or self._amx_bf16())
+
+    def mlp_kernel_args(self) -> tuple[list[Tensor], bool, float] | None:
+        """What :mod:`nerf.mlp_kernel` runs this field's MLPs with: (the five weights, whether
+        it multiplies in bf16, the density logit's clamp); None where the torch layers do."""
+        if not self.prepare_kernels():
+            return None
+        weights = mlp_weights(self.density_mlp, self.color_mlp)
+        return weights, self._amx_bf16(), float(MAX_LOG_DENSITY)
 
     def _amx_bf16(self) -> bool:
         """Whether the MLPs multiply in bf16 and the fused kernel can do so on AMX tiles."""

@@ -263,6 +263,17 @@ class HashGrid(torch.nn.Module):
             w1.detach().float(), w2.detach().float(), max_log_density, min_transmittance, bf16,
         ))  # fmt: skip
 
+    def backward_args(self) -> tuple | None:
+        """The table layout :func:`table_backward` takes for this table (the backward of
+        :meth:`forward`), or None where that is not the backward in use (not the C++ kernel,
+        or a table stored below float32)."""
+        self.prepare()
+        if not self._fusable():
+            return None
+        rows, features = self.table.shape
+        level = BACKWARD_MODES["level"]
+        return rows, features, list(self.resolutions), list(self.offsets), self.log2_hashmap, level
+
     def _fusable(self) -> bool:
         """Whether the fused C++ queries can run: float32 storage and the C++ kernel."""
         return self.dtype == torch.float32 and kernel("hashgrid", self.backend) is not None
@@ -317,18 +328,28 @@ class _CppEncode(torch.autograd.Function):
         (x,) = ctx.saved_tensors
         grad = None
         if ctx.needs_input_grad[1]:
-            ext, grad_out = load_extension(), grad_out.float().contiguous()
-            leaf = ctx.grad_into
-            if leaf is None:
-                grad = ext.backward(grad_out, x, _EMPTY, *ctx.args)
-            elif leaf.grad is None:  # the kernel zeroes the new gradient level by level itself
-                leaf.grad = ext.backward(grad_out, x, _EMPTY, *ctx.args)
-            else:
-                ext.backward(grad_out, x, leaf.grad, *ctx.args)
+            grad = table_backward(grad_out, x, ctx.args, ctx.grad_into)
         return None, grad, None, None, None, None, None, None
 
 
 _EMPTY = torch.empty(0)
+
+
+def table_backward(
+    grad_out: Tensor, x: Tensor, args: tuple, leaf: torch.nn.Parameter | None
+) -> Tensor | None:
+    """The C++ backward of the encoding of ``x`` [N, 3] (float32, contiguous) given its gradient
+    ``grad_out`` [N, L * F]: the table gradient, added into ``leaf.grad`` (None returned) or,
+    without a leaf, returned. ``args``: (rows, features, resolutions, offsets, log2_hashmap,
+    mode) as the kernel takes them (:meth:`HashGrid.backward_args`)."""
+    ext, grad_out = load_extension(), grad_out.float().contiguous()
+    if leaf is None:
+        return ext.backward(grad_out, x, _EMPTY, *args)
+    if leaf.grad is None:  # the kernel zeroes the new gradient level by level itself
+        leaf.grad = ext.backward(grad_out, x, _EMPTY, *args)
+    else:
+        ext.backward(grad_out, x, leaf.grad, *args)
+    return None
 
 
 def hash_encode_cpp(

@@ -71,9 +71,32 @@ def field_outputs(
         scene unit (exp of the density MLP's first output clamped to +-``max_log_density``),
         float32.
     """
-    weights = [m.weight for m in (*density_mlp, *color_mlp) if isinstance(m, nn.Linear)]
     lim = float(max_log_density)
+    weights = mlp_weights(density_mlp, color_mlp)
     return _FusedMLP.apply(encoded, dir_enc.detach(), ray_indices, bf16, lim, *weights)
+
+
+def mlp_weights(density_mlp: nn.Sequential, color_mlp: nn.Sequential) -> list[Tensor]:
+    """The five weights the kernel takes, in its order."""
+    return [m.weight for m in (*density_mlp, *color_mlp) if isinstance(m, nn.Linear)]
+
+
+def forward(encoded, dir_enc, ray_indices, weights, bf16: bool, lim: float) -> tuple:
+    """The kernel's forward, without autograd: (rgb [N, C], sigma [N], logit) and the
+    arguments :func:`backward` takes again (the inputs as the kernel saw them)."""
+    args = (encoded.float().contiguous(), dir_enc.float().contiguous(), ray_indices.long())
+    rgb, sigma, logit = backend_load("mlp").forward(*args, *(w.float() for w in weights), bf16, lim)
+    return (rgb, sigma, logit), args
+
+
+def backward(g_rgb, g_sigma, outputs, args, weights, bf16: bool, lim: float) -> list[Tensor]:
+    """The kernel's backward: [grad of the encodings, grads of the five weights], given the
+    gradients of colour and density (None: zero) and :func:`forward`'s outputs and args."""
+    rgb, sigma, _ = outputs
+    g_rgb = torch.zeros_like(rgb) if g_rgb is None else g_rgb.float()
+    g_sigma = torch.zeros_like(sigma) if g_sigma is None else g_sigma.float()
+    ws = [w.float() for w in weights]
+    return backend_load("mlp").backward(g_rgb, g_sigma, *outputs, *args, *ws, bf16, lim)
 
 
 @functools.cache
@@ -89,23 +112,15 @@ class _FusedMLP(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, encoded, dir_enc, ray_indices, bf16, lim, *weights):  # noqa: D102
-        args = (encoded.float().contiguous(), dir_enc.float().contiguous(), ray_indices.long())
-        ws = [w.float() for w in weights]
-        rgb, sigma, logit = backend_load("mlp").forward(*args, *ws, bf16, lim)
-        ctx.save_for_backward(rgb, sigma, logit, *args, *weights)
+        outputs, args = forward(encoded, dir_enc, ray_indices, weights, bf16, lim)
+        ctx.save_for_backward(*outputs, *args, *weights)
         ctx.bf16, ctx.lim = bf16, lim
-        ctx.mark_non_differentiable(logit)
-        return rgb, sigma
+        ctx.mark_non_differentiable(outputs[2])
+        return outputs[0], outputs[1]
 
     @staticmethod
     def backward(ctx, g_rgb, g_sigma):  # noqa: D102
-        rgb, sigma, logit, encoded, dir_enc, ray_indices, *weights = ctx.saved_tensors
-        ws = [w.float() for w in weights]
-        g_rgb = torch.zeros_like(rgb) if g_rgb is None else g_rgb.float()
-        g_sigma = torch.zeros_like(sigma) if g_sigma is None else g_sigma.float()
-        grads = backend_load("mlp").backward(
-            g_rgb, g_sigma, rgb, sigma, logit, encoded, dir_enc, ray_indices, *ws, ctx.bf16,
-            ctx.lim,
-        )  # fmt: skip
+        saved = ctx.saved_tensors
+        grads = backward(g_rgb, g_sigma, saved[:3], saved[3:6], saved[6:], ctx.bf16, ctx.lim)
         grad_e = grads[0] if ctx.needs_input_grad[0] else None
         return grad_e, None, None, None, None, *grads[1:]

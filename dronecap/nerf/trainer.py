@@ -27,7 +27,7 @@ from dronecap.camera import Camera
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
-from . import adam_step, budget, carve, compaction, occupancy
+from . import adam_step, budget, carve, compaction, fused_pass, occupancy
 from .batch import RayBatch, draw_rays, whole_rays
 from .checkpoint import checkpoint_resolved, read_checkpoint, write_checkpoint
 from .config import TrainConfig
@@ -206,7 +206,10 @@ class Trainer:
 
         behind = field.behind(dirs, bg)  # the far field or the fixed background
         n_rays = origins.shape[0]
-        if self.cfg.distortion <= 0:  # the colour alone
+        if self.cfg.distortion <= 0:  # the colour alone: one node where all of it is C++
+            color = fused_pass.colors(field, s, dir_enc, behind)
+            if color is not None:
+                return color, None
             color = composite(s.t_starts, s.t_ends, s.ray_indices, n_rays, color_sigma, behind,
                               field.encoding.backend)  # fmt: skip
             return color, None
