@@ -257,6 +257,7 @@ def rebuild_grid(trainer: Any, passes: int = REBUILD_PASSES) -> None:
             trainer.aabb,
             trainer.step_size,
             trainer.generator,
+            trainer.field.grid_refresh,
         )
     trainer.grid = grid
 

@@ -213,6 +213,24 @@ class Field(nn.Module):
             self._amx_bf16(),
         )
 
+    @torch.no_grad()
+    def grid_refresh(
+        self, density: Tensor, allowed: Tensor | None, cells: Tensor, jitter: Tensor,
+        aabb: Tensor, res: int, step_size: float, decay: float, threshold: float,
+    ) -> tuple[Tensor, Tensor] | None:  # fmt: skip
+        """An occupancy-grid update after its draws in one C++ call (``refresh`` of
+        :func:`nerf.occupancy.update`, whose arguments these are): the density of each
+        sampled cell at its jittered point (encoding and density MLP fused, as
+        :meth:`density_and_encoding`), folded into the grid; None where the fused queries
+        cannot run this field."""
+        layers = self._density_rows()
+        if layers is None:
+            return None
+        box = torch.stack([self.aabb_min, self.aabb_size])  # as :meth:`unit` maps
+        grid = (density, allowed, aabb, res, step_size, decay, threshold)
+        mlp = (*layers, MAX_LOG_DENSITY)
+        return self.encoding.fused_grid_refresh(grid, cells, jitter, box, mlp, self._amx_bf16())
+
     def _density_rows(self) -> tuple[Tensor, Tensor] | None:
         """(hidden-layer weight, the density's output row) of a density MLP of one hidden
         layer, which the fused C++ queries take; else None. Under bf16 products they multiply

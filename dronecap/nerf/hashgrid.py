@@ -263,6 +263,36 @@ class HashGrid(torch.nn.Module):
             w1.detach().float(), w2.detach().float(), max_log_density, min_transmittance, bf16,
         ))  # fmt: skip
 
+    @torch.no_grad()
+    def fused_grid_refresh(
+        self, grid: tuple, cells: Tensor, jitter: Tensor, box: Tensor, density_mlp: tuple,
+        bf16: bool = False,
+    ) -> tuple[Tensor, Tensor] | None:  # fmt: skip
+        """An occupancy-grid update after its draws in one C++ call (None as
+        :meth:`fused_density`): each sampled cell's density at its jittered point, as
+        :meth:`fused_density` computes it, folded into the grid.
+
+        Args:
+            grid: (density float32 [R^3], allowed bool [R^3] or None, aabb [2, 3] of the grid,
+                R, step_size, decay, threshold) as :func:`nerf.occupancy.update` has them.
+            cells, jitter: [M] flat cell indices and [M, 3] positions in [0, 1) inside them.
+            box: [2, 3] the min corner and size of the box whose unit cube is encoded.
+            density_mlp: (w1, w2, max_log_density) as in :meth:`fused_visible`.
+
+        Returns:
+            the new (density, occupied) of :func:`nerf.occupancy.update`.
+        """
+        if not self._fusable():
+            return None
+        density, allowed, aabb, res, step_size, decay, threshold = grid
+        w1, w2, lim = density_mlp
+        ok = torch.zeros(0, dtype=torch.bool) if allowed is None else allowed.contiguous()
+        return tuple(load_extension().grid_refresh(
+            density.float(), ok, cells.long(), jitter.float(), aabb.float(), box.float(),
+            int(res), float(step_size), float(decay), float(threshold), *self._table_args(),
+            w1.detach().float(), w2.detach().float(), float(lim), bf16,
+        ))  # fmt: skip
+
     def backward_args(self) -> tuple | None:
         """The table layout :func:`table_backward` takes for this table (the backward of
         :meth:`forward`), or None where that is not the backward in use (not the C++ kernel,

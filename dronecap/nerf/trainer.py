@@ -252,6 +252,7 @@ class Trainer:
                 self.aabb,
                 self.step_size,
                 self.generator,
+                self.field.grid_refresh,
             )
         lr = self._lr(self.step)
         for i, group in enumerate(self.optimizer.param_groups):

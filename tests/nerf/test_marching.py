@@ -6,7 +6,10 @@ import pytest
 import torch
 
 from dronecap.nerf import occupancy
+from dronecap.nerf.backend import kernel
 from dronecap.nerf.batch import RayBatch, whole_rays
+from dronecap.nerf.config import preset
+from dronecap.nerf.field import Field
 from dronecap.nerf.marching import march
 from dronecap.nerf.rays import ray_aabb
 
@@ -122,3 +125,28 @@ def test_grid_update_after_warm_up_samples_quarters_of_the_allowed_cells():
     cells = torch.cat(seen)
     assert cells.numel() == 2 * (64 // 4)  # a quarter uniform + a quarter occupied, of 64
     assert bool(allowed[cells].all())  # never outside the hull
+
+
+@pytest.mark.skipif(kernel("hashgrid", "auto") is None, reason="C++ hash-grid kernel unavailable")
+@pytest.mark.parametrize("hull", [False, True])
+@pytest.mark.parametrize("step", [0, 300])  # warm-up (every cell), then quarters
+def test_the_fused_grid_update_gives_the_torch_ones_grid(hull, step):
+    torch.manual_seed(0)
+    field = Field(preset("test").replace(n_max=64, mlp_dtype="fp32"), 3, BOX.numpy())
+    with torch.no_grad():
+        field.encoding.table.uniform_(-1, 1)
+        field.density_mlp[-1].weight.mul_(20.0)  # densities from ~0 to the clamp
+    cfg = occupancy.GridConfig(res=16, warmup=100)
+    state = occupancy.init_state(cfg)
+    state.density.uniform_(0.0, 0.05)  # an EMA to decay
+    if hull:
+        state = occupancy.restrict(state, torch.rand(16**3) < 0.6)
+    out = []
+    for refresh in (field.grid_refresh, None):
+        g = torch.Generator().manual_seed(1)
+        out.append(occupancy.update(cfg, state, step, field.density, BOX, 0.05, g, refresh))
+    fused, plain = out
+    assert torch.allclose(fused.density, plain.density, rtol=1e-5, atol=1e-8)
+    assert torch.equal(fused.occupied, plain.occupied)
+    assert fused.occupied.any() and not fused.occupied.all()
+    assert (fused.allowed is None) == (not hull) and (fused.pool is None) == (not hull)

@@ -875,6 +875,73 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
   return {kept_ri, kept_t0, kept_t1, counts, kept, unit};
 }
 
+// One occupancy-grid update after its random draws (nerf/occupancy.py's update): the optical
+// thickness density * step_size at a jittered point of each sampled cell (cells [M] flat
+// x-major indices of a res^3 grid over grid_box [2, 3] (min, max), jitter [M, 3] in [0, 1)),
+// the point encoded in the unit cube of the field's box (box [2, 3]: min corner and size);
+// density = exp(raw clamped to +-max_log_density), NaN -> 0. Folded into the grid's EMA
+// (density [res^3]): new = max(old * decay, 0, each sampled point's thickness in the cell).
+// Returns {new density, occupied bool [res^3]: new > min(threshold, mean(new)), and allowed
+// (bool [res^3], or empty for every cell)}.
+std::vector<torch::Tensor> grid_refresh(torch::Tensor density, torch::Tensor allowed,
+                                        torch::Tensor cells, torch::Tensor jitter,
+                                        torch::Tensor grid_box, torch::Tensor box, int64_t res,
+                                        double step_size, double decay, double threshold,
+                                        torch::Tensor table, std::vector<int64_t> resolutions,
+                                        std::vector<int64_t> offsets, int64_t log2_hashmap,
+                                        torch::Tensor w1, torch::Tensor w2,
+                                        double max_log_density, bool bf16) {
+  const int64_t n = density.numel(), m = cells.numel();
+  TORCH_CHECK(res >= 1 && res <= 1024 && n == res * res * res, "density must hold res^3 cells");
+  TORCH_CHECK(density.scalar_type() == torch::kFloat32 && cells.scalar_type() == torch::kInt64 &&
+                  jitter.scalar_type() == torch::kFloat32 && jitter.numel() == 3 * m &&
+                  grid_box.numel() == 6 && box.numel() == 6,
+              "density float32 [res^3], cells int64 [M], jitter float32 [M, 3], boxes [2, 3]");
+  TORCH_CHECK(allowed.numel() == 0 || (allowed.numel() == n && allowed.scalar_type() == torch::kBool),
+              "allowed must be bool [res^3] or empty");
+  const auto old = density.contiguous(), c = cells.contiguous(), j = jitter.contiguous();
+  const auto gb = grid_box.contiguous(), fb = box.contiguous(), ok = allowed.contiguous();
+  const float *op = old.data_ptr<float>(), *jp = j.data_ptr<float>();
+  const float *g = gb.data_ptr<float>(), *b = fb.data_ptr<float>();
+  const int64_t* cp = c.data_ptr<int64_t>();
+  std::vector<float> x(3 * m);
+  bool bad = false;
+  const int nt = at::get_num_threads();
+#pragma omp parallel for schedule(static) num_threads(nt) reduction(|| : bad)
+  for (int64_t i = 0; i < m; ++i) {
+    const int64_t cell = cp[i];
+    if (cell < 0 || cell >= n) { bad = true; continue; }
+    const int64_t ijk[3] = {cell / (res * res), (cell / res) % res, cell % res};
+    for (int k = 0; k < 3; ++k) {
+      const float p = g[k] + (float(ijk[k]) + jp[3 * i + k]) / float(res) * (g[3 + k] - g[k]);
+      x[3 * i + k] = (p - b[k]) / b[3 + k];
+    }
+  }
+  TORCH_CHECK(!bad, "a cell index is out of the grid");
+  std::vector<float> raw(m);
+  const DensityQuery query(table, resolutions, offsets, log2_hashmap, w1, w2, bf16);
+  query(x.data(), m, raw.data(), nullptr);
+  auto fresh = torch::empty({n}, old.options());
+  float* np = fresh.data_ptr<float>();
+  const float d = float(decay), lim = float(max_log_density), step = float(step_size);
+#pragma omp parallel for schedule(static) num_threads(nt)
+  for (int64_t i = 0; i < n; ++i) np[i] = std::max(op[i] * d, 0.0f);
+  for (int64_t i = 0; i < m; ++i) {
+    const float t = std::exp(std::fmin(std::fmax(raw[i], -lim), lim)) * step;
+    if (!std::isnan(t)) np[cp[i]] = std::max(np[cp[i]], t);
+  }
+  double sum = 0.0;
+#pragma omp parallel for schedule(static) num_threads(nt) reduction(+ : sum)
+  for (int64_t i = 0; i < n; ++i) sum += np[i];
+  const float cut = std::min(float(threshold), float(sum / double(n)));
+  auto occupied = torch::empty({n}, old.options().dtype(torch::kBool));
+  bool* qp = occupied.data_ptr<bool>();
+  const bool* ap = ok.numel() ? ok.data_ptr<bool>() : nullptr;
+#pragma omp parallel for schedule(static) num_threads(nt)
+  for (int64_t i = 0; i < n; ++i) qp[i] = np[i] > cut && (!ap || ap[i]);
+  return {fresh, occupied};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // the GIL is released while a kernel runs: another Python thread can work meanwhile
   m.def("forward", &hash_forward, "hash encoding forward: (x [N,3], table [R,F], ...) -> [N, L*F]",
@@ -891,5 +958,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "t_starts, t_ends, counts per ray, encodings, unit points)",
         py::call_guard<py::gil_scoped_release>());
   m.def("backward", &hash_backward, "hash encoding backward: scatter-add of grad_out into the table",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("grid_refresh", &grid_refresh,
+        "an occupancy-grid update after its draws: (density, allowed, cells, jitter, grid_box, "
+        "box, res, step_size, decay, threshold, table, ..., w1, w2, max_log_density, bf16) -> "
+        "(new density, occupied)",
         py::call_guard<py::gil_scoped_release>());
 }
