@@ -27,19 +27,18 @@ from dronecap.camera import Camera
 from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
-from . import adam_step, budget, carve, compaction, fused_pass, occupancy
+from . import adam_step, budget, carve, compaction, occupancy, train_pass
 from .batch import RayBatch, draw_rays, whole_rays
 from .checkpoint import checkpoint_resolved, read_checkpoint, write_checkpoint
 from .config import TrainConfig
 from .field import DTYPES, Field
-from .losses import huber_sum, psnr_from_mse
+from .losses import psnr_from_mse
 from .march_kernel import march_function
 from .marching import Samples, tiles
 from .photometric import Photometric
 from .rays import frame_cameras, ray_aabb
 from .render import Volume, render_view
 from .resolve import Resolved, resolve, training_frames
-from .volrend import composite, distortion, render_packed
 
 MAX_BAD_STEPS = 20  # consecutive non-finite steps before training stops
 PHOTOMETRIC_GROUP = 2  # index of the photometric parameters' Adam group (when it has any)
@@ -192,32 +191,6 @@ class Trainer:
         self.samples_per_ray = max((kept if trained else s).n / rays.origins.shape[0], 0.01)
         return rays, kept
 
-    def _render_rays(
-        self, origins, dirs, s: Samples, bg
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Colour [R, C] of rays through the field (with autograd) and each ray's distortion
-        [R] in units of the AABB diagonal (None when the ``distortion`` weight is 0)."""
-        field = self.field
-        dir_enc = field.dir_encoding(dirs)  # once per ray, gathered per sample
-
-        def color_sigma(t0, t1, ri):  # the samples of ``s``, in order
-            unit = field.unit(s.midpoints(origins, dirs)) if s.unit is None else s.unit
-            return field.color_sigma(unit, dir_enc, ri, s.encoded)
-
-        behind = field.behind(dirs, bg)  # the far field or the fixed background
-        n_rays = origins.shape[0]
-        if self.cfg.distortion <= 0:  # the colour alone: one node where all of it is C++
-            color = fused_pass.colors(field, s, dir_enc, behind)
-            if color is not None:
-                return color, None
-            color = composite(s.t_starts, s.t_ends, s.ray_indices, n_rays, color_sigma, behind,
-                              field.encoding.backend)  # fmt: skip
-            return color, None
-        out = render_packed(s.t_starts, s.t_ends, s.ray_indices, n_rays, color_sigma, behind)
-        diag = float(torch.linalg.norm(self.aabb[1] - self.aabb[0]))  # t in AABB diagonals
-        t0, t1 = s.t_starts / diag, s.t_ends / diag
-        return out.color, distortion(out.weights, t0, t1, s.ray_indices, n_rays)
-
     def accumulate_gradients(self, rays: RayBatch, s: Samples) -> float:
         """Forward/backward of a batch tile by tile, accumulating into ``.grad``.
 
@@ -227,16 +200,12 @@ class Trainer:
         the photometric model (exposure, vignetting; the identity when both are off) before
         the loss. Returns the batch loss.
         """
-        n_rays, c = rays.target.shape
-        total = 0.0
+        n_rays, total = rays.target.shape[0], 0.0
         for a, b, tile in tiles(s, self.cfg.tile_samples):
-            color, spread = self._render_rays(rays.origins[a:b], rays.dirs[a:b], tile, rays.bg[a:b])
-            seen = self.photometric(color, rays.frame[a:b], rays.radius[a:b])
-            loss = huber_sum(seen, rays.target[a:b]) / (n_rays * c)
-            if spread is not None:
-                loss = loss + self.cfg.distortion * spread.sum() / n_rays
-            loss.backward()
-            total += float(loss.detach())
+            part = RayBatch(*(t[a:b] for t in rays))
+            total += train_pass.tile_loss(
+                self.field, self.photometric, part, tile, n_rays, self.cfg.distortion, self.aabb
+            )
         return total
 
     def train_step(self) -> dict:

@@ -1,15 +1,16 @@
-"""The training pass as one autograd node: the separate Functions' colours and gradients."""
+"""A training tile without an autograd graph through the field: autograd's loss and gradients."""
 
 import pytest
 import torch
 
 from dronecap.nerf import fused_pass
 from dronecap.nerf.backend import kernel
+from dronecap.nerf.batch import RayBatch
 from dronecap.nerf.compaction import visible
 from dronecap.nerf.config import preset
 from dronecap.nerf.mlp_kernel import amx
+from dronecap.nerf.train_pass import autograd_tile
 from dronecap.nerf.trainer import Trainer
-from dronecap.nerf.volrend import composite
 
 pytestmark = pytest.mark.skipif(
     any(kernel(k, "auto") is None for k in ("hashgrid", "mlp", "march")),
@@ -23,58 +24,65 @@ def _batch(tr: Trainer):
     return rays, visible(s, rays.origins, rays.dirs, tr.field, 1e-4)
 
 
-def _colour_and_grads(tr: Trainer, rays, s, fused: bool):
-    field = tr.field
-    for p in field.parameters():
+def _loss_and_grads(tr: Trainer, rays, s, fused: bool):
+    params = [*tr.field.parameters(), *tr.photometric.parameters()]
+    for p in params:
         p.grad = None
-    dir_enc = field.dir_encoding(rays.dirs)
-    behind = field.behind(rays.dirs, rays.bg)
-    n = rays.origins.shape[0]
+    n = rays.origins.shape[0] + 7  # the batch's count, not the tile's, scales the loss
     if fused:
-        color = fused_pass.colors(field, s, dir_enc, behind)
+        loss = fused_pass.train_tile(tr.field, tr.photometric, rays, s, n)
     else:
-
-        def color_sigma(t0, t1, ri):
-            return field.color_sigma(s.unit, dir_enc, ri, s.encoded)
-
-        color = composite(s.t_starts, s.t_ends, s.ray_indices, n, color_sigma, behind)
-    weights = torch.linspace(-1.0, 2.0, color.numel()).reshape(color.shape)  # any loss
-    (color * weights).sum().backward()
-    grads = {k: p.grad.clone() for k, p in field.named_parameters() if p.grad is not None}
-    return color.detach(), grads
+        loss = autograd_tile(tr.field, tr.photometric, rays, s, n, 0.0, tr.aabb)
+    return loss, [None if p.grad is None else p.grad.clone() for p in params]
 
 
-@pytest.mark.parametrize("far_field", ["none", "sh"])
-@pytest.mark.parametrize("mlp_dtype", ["fp32", "bf16"])
-def test_the_fused_pass_gives_the_separate_functions_values_bit_for_bit(
-    cube_rgb, far_field, mlp_dtype
-):
-    if mlp_dtype == "bf16" and not amx():
+@pytest.mark.parametrize(
+    "changes",
+    [
+        dict(mlp_dtype="fp32"),
+        dict(mlp_dtype="bf16"),
+        dict(mlp_dtype="fp32", far_field="sh"),  # the far field's gradient
+        dict(mlp_dtype="fp32", learn_exposure="on", learn_vignetting="on"),
+    ],
+)
+def test_the_fused_tile_gives_autograds_loss_and_gradients_bit_for_bit(cube_rgb, changes):
+    if changes["mlp_dtype"] == "bf16" and not amx():
         pytest.skip("bf16 products need AMX-BF16 tiles")
-    cfg = preset("test").replace(batch_samples=2048, grid_res=16, far_field=far_field,
-                                 mlp_dtype=mlp_dtype)  # fmt: skip
+    cfg = preset("test").replace(batch_samples=2048, grid_res=16, **changes)
     tr = Trainer(cfg, cube_rgb)
     tr.train(20)
     rays, s = _batch(tr)
     assert s.n > 200 and s.encoded is not None
-    a, ga = _colour_and_grads(tr, rays, s, fused=True)
-    b, gb = _colour_and_grads(tr, rays, s, fused=False)
-    assert torch.equal(a, b)
-    assert ga.keys() == gb.keys() and "encoding.table" in ga
-    assert (far_field == "sh") == any(k.startswith("far") for k in ga)  # reaches the far field
-    for k in ga:
-        assert torch.equal(ga[k], gb[k]), k
-    assert all(g.abs().sum() > 0 for g in ga.values())
+    a, ga = _loss_and_grads(tr, rays, s, fused=True)
+    b, gb = _loss_and_grads(tr, rays, s, fused=False)
+    assert a == b and a > 0
+    assert [g is None for g in ga] == [g is None for g in gb]
+    for x, y in zip(ga, gb, strict=True):
+        assert x is None or torch.equal(x, y)
+    assert sum(g is not None for g in ga) >= 6  # table and five weights, at least
+    if "far_field" in changes or "learn_exposure" in changes:  # theirs too
+        assert sum(g is not None for g in ga) > 6
 
 
-def test_the_fused_pass_steps_aside_where_a_part_has_no_kernel(cube_rgb):
+def test_the_fused_tile_adds_to_gradients_already_there(cube_rgb):
+    tr = Trainer(preset("test").replace(batch_samples=2048, grid_res=16), cube_rgb)
+    tr.train(20)
+    rays, s = _batch(tr)
+    _, once = _loss_and_grads(tr, rays, s, fused=True)
+    fused_pass.train_tile(tr.field, tr.photometric, rays, s, rays.origins.shape[0] + 7)
+    twice = [p.grad for p in tr.field.parameters()]
+    for x, y in zip(once, twice, strict=True):
+        if x is not None:
+            torch.testing.assert_close(y, 2 * x)
+
+
+def test_the_fused_tile_steps_aside_where_a_part_has_no_kernel(cube_rgb):
     tr = Trainer(preset("test").replace(batch_samples=1024, grid_res=16), cube_rgb)
     rays, s = _batch(tr)
-    field = tr.field
-    dir_enc, behind = field.dir_encoding(rays.dirs), field.behind(rays.dirs, rays.bg)
-    assert fused_pass.colors(field, s, dir_enc, behind) is not None
     bare = type(s)(s.ray_indices, s.t_starts, s.t_ends, s.counts)  # no pre-pass encodings
-    assert fused_pass.colors(field, bare, dir_enc, behind) is None
-    torch_field = Trainer(preset("test").replace(batch_samples=1024, grid_res=16), cube_rgb,
-                          backend="torch").field  # fmt: skip
-    assert fused_pass.colors(torch_field, s, dir_enc, behind) is None
+    assert fused_pass.train_tile(tr.field, tr.photometric, rays, bare, 100) is None
+    plain = Trainer(preset("test").replace(batch_samples=1024, grid_res=16), cube_rgb,
+                    backend="torch")  # fmt: skip
+    assert fused_pass.train_tile(plain.field, plain.photometric, rays, s, 100) is None
+    assert all(p.grad is None for p in [*tr.field.parameters(), *plain.field.parameters()])
+    assert isinstance(rays, RayBatch)

@@ -8,6 +8,7 @@ import torch
 
 from dronecap.nerf.config import preset
 from dronecap.nerf.render import render_rays
+from dronecap.nerf.train_pass import render_rays as render_batch
 from dronecap.nerf.trainer import Trainer, TrainingDiverged
 
 
@@ -47,7 +48,7 @@ def test_distortion_weight_adds_each_rays_spread_to_the_loss(cube_rgb):
     plain, g_plain = _loss_and_grads(tr, batch)
     with_term, g_with = _loss_and_grads(tr, batch, distortion=0.5)
     rays, s = batch
-    _, spread = tr._render_rays(rays.origins, rays.dirs, s, rays.bg)
+    _, spread = render_batch(tr.field, rays.origins, rays.dirs, s, rays.bg, 0.5, tr.aabb)
     assert with_term > plain
     assert abs(with_term - plain - 0.5 * float(spread.mean())) < 1e-5 * max(1.0, with_term)
     assert any(not torch.equal(a, b) for a, b in zip(g_plain, g_with, strict=True))
@@ -178,7 +179,7 @@ def test_render_rays_matches_packed_reference(cube_rgb, monkeypatch):
     with torch.no_grad():
         t_near, t_far, _ = ray_aabb(origins, dirs, tr.aabb)
         s = tr.march(origins, dirs, t_near, t_far, tr.step_size, tr.grid, tr.aabb, 1 << 20)
-        ref = tr._render_rays(origins, dirs, s, bg)[0].clamp(0, 1)
+        ref = render_batch(tr.field, origins, dirs, s, bg, 0.0, tr.aabb)[0].clamp(0, 1)
     assert s.n > 0 and int(s.counts.max()) > 8  # some rays need several rounds
     exact = dict(min_transmittance=0.0, min_weight=0.0)
     default = render_rays(tr.volume(), origins, dirs, bg)
