@@ -6,10 +6,11 @@ A training step renders its rays from the samples compaction kept: their hash en
 (:func:`.volrend.composite`). Through autograd each is a Function of its own, and the glue
 between them (Function applications, their Python backward calls, the engine's work between
 them) cost ~0.5 ms of a ~6 ms lego step at two threads. :func:`train_tile` calls the same
-kernels in the same order, forward then backward, and hands each parameter its gradient; only
-the loss, the photometric model and a far field (small torch ops) go through autograd. The same
-values and gradients as :func:`.train_pass.autograd_tile`, bit for bit
-(tests/nerf/test_fused_pass.py).
+kernels in the same order, forward then backward, and hands each parameter its gradient. The
+loss's gradient comes from :func:`.losses.huber_loss_and_grad` (the backward of
+:func:`.losses.huber_loss`); only a learned photometric model and a far field (small torch
+ops) go through autograd. The same values and gradients as :func:`.train_pass.autograd_tile`,
+bit for bit (tests/nerf/test_fused_pass.py).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from .backend import kernel
 from .batch import RayBatch
 from .field import Field
 from .hashgrid import table_backward
-from .losses import huber_sum
+from .losses import huber_loss, huber_loss_and_grad
 from .marching import Samples
 from .photometric import Photometric
 
@@ -55,13 +56,16 @@ def train_tile(
         outputs, args = mlp_kernel.forward(s.encoded, dir_enc, ri, weights, bf16, lim)
         rgb, sigma, _ = outputs
         color = march.composite(sigma, rgb, t0, t1, ri, bg)
-    # the loss and the photometric model through autograd, from the colour on
-    color.requires_grad_(True)
-    seen = photometric(color, rays.frame, rays.radius)
-    loss = huber_sum(seen, rays.target) / (n_rays * rays.target.shape[1])
-    loss.backward()
+    divisor = n_rays * rays.target.shape[1]
+    if photometric.identity():  # the loss's gradient by hand: no autograd at all
+        loss, g = huber_loss_and_grad(color, rays.target, divisor)
+    else:  # the loss and the photometric model through autograd, from the colour on
+        color.requires_grad_(True)
+        loss = huber_loss(photometric(color, rays.frame, rays.radius), rays.target, divisor)
+        loss.backward()
+        g = color.grad
     with torch.no_grad():
-        g = color.grad.float().contiguous()
+        g = g.float().contiguous()
         d_sigma, d_rgb, d_bg = march.composite_backward(g, sigma, rgb, t0, t1, ri, bg)
         grads = mlp_kernel.backward(d_rgb, d_sigma, outputs, args, weights, bf16, lim)
         table = field.encoding.table

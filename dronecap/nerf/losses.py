@@ -4,17 +4,46 @@ from __future__ import annotations
 
 import math
 
-import torch.nn.functional as F
+import torch
 from torch import Tensor
 
 HUBER_DELTA = 0.1  # Instant-NGP's Huber transition (colour units in [0, 1])
 
 
-def huber_sum(pred: Tensor, target: Tensor, delta: float = HUBER_DELTA) -> Tensor:
-    """Sum over rays and channels of the Huber loss ``d^2 / (2 delta)`` (|d| < delta) or
-    ``|d| - delta / 2``; ``pred``/``target`` [R, C]. Divide by the batch's ray count (not the
-    tile's) so that accumulating tiles gives exactly the full-batch loss and gradient."""
-    return F.smooth_l1_loss(pred, target, reduction="sum", beta=delta)
+def huber_loss(pred: Tensor, target: Tensor, divisor: int) -> Tensor:
+    """The sum over rays and channels of the Huber loss ``d^2 / (2 delta)`` (|d| < delta) or
+    ``|d| - delta / 2`` of ``d = pred - target`` ([R, C]), divided by ``divisor``, with
+    autograd to ``pred``. The trainer divides by the batch's ray and channel counts (not the
+    tile's), so that accumulating tiles gives exactly the full-batch loss and gradient."""
+    return _Huber.apply(pred, target, divisor)
+
+
+@torch.no_grad()
+def huber_loss_and_grad(pred: Tensor, target: Tensor, divisor: int) -> tuple[Tensor, Tensor]:
+    """:func:`huber_loss` and its gradient [R, C] w.r.t. ``pred``, without autograd (the values
+    of torch's smooth L1 loss, ``beta`` = delta, up to float32 rounding). NaN and inf reach
+    the loss."""
+    d = pred - target
+    z = d.abs()
+    loss = torch.where(z < HUBER_DELTA, 0.5 * z * z / HUBER_DELTA, z - 0.5 * HUBER_DELTA)
+    grad = torch.where(z < HUBER_DELTA, d / HUBER_DELTA, d.sign()) / divisor
+    return loss.sum() / divisor, grad
+
+
+class _Huber(torch.autograd.Function):
+    """:func:`huber_loss` as one node whose backward is :func:`huber_loss_and_grad`'s gradient
+    (what the graph-free training tile hands back itself: the two agree bit for bit)."""
+
+    @staticmethod
+    def forward(ctx, pred, target, divisor):  # noqa: D102
+        loss, grad = huber_loss_and_grad(pred, target, divisor)
+        ctx.save_for_backward(grad)
+        return loss
+
+    @staticmethod
+    def backward(ctx, g):  # noqa: D102
+        (grad,) = ctx.saved_tensors
+        return grad * g, None, None
 
 
 def psnr_from_mse(mse: float) -> float:

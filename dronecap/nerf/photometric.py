@@ -85,6 +85,10 @@ class Photometric(nn.Module):
         self.log_gain = nn.Parameter(torch.zeros(n_frames, channels)) if exposure else None
         self.vignette = nn.Parameter(torch.zeros(VIGNETTE_TERMS)) if vignetting else None
 
+    def identity(self) -> bool:
+        """Whether the model learns nothing (its :meth:`forward` returns the colour itself)."""
+        return self.log_gain is None and self.vignette is None
+
     def gains(self) -> Tensor:
         """Gains [n_frames, C] (factor of the linear colour): ``exp`` of the clamped log-gains
         minus their mean over frames, so their geometric mean is 1 per channel."""

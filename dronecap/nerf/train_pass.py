@@ -16,7 +16,7 @@ from torch import Tensor
 from . import fused_pass
 from .batch import RayBatch
 from .field import Field
-from .losses import huber_sum
+from .losses import huber_loss
 from .marching import Samples
 from .photometric import Photometric
 from .volrend import composite, distortion, render_packed
@@ -49,7 +49,7 @@ def autograd_tile(
     """:func:`tile_loss` through autograd (any configuration)."""
     color, spread = render_rays(field, rays.origins, rays.dirs, s, rays.bg, distortion_weight, aabb)
     seen = photometric(color, rays.frame, rays.radius)
-    loss = huber_sum(seen, rays.target) / (n_rays * rays.target.shape[1])
+    loss = huber_loss(seen, rays.target, n_rays * rays.target.shape[1])
     if spread is not None:
         loss = loss + distortion_weight * spread.sum() / n_rays
     loss.backward()
