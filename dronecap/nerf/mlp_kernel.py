@@ -28,7 +28,7 @@ MAX_COLOR = 16  # colour channels the kernel's output tile holds
 
 
 def usable(density_mlp: nn.Sequential, color_mlp: nn.Sequential, backend: str) -> bool:
-    """Whether :func:`field_logits` can run these MLPs (bias-free ``Linear``/``ReLU`` stacks as
+    """Whether :func:`field_outputs` can run these MLPs (bias-free ``Linear``/``ReLU`` stacks as
     :func:`nerf.field._mlp` builds them) under ``backend`` (:func:`nerf.backend.kernel`)."""
     dens = [m for m in density_mlp if isinstance(m, nn.Linear)]
     col = [m for m in color_mlp if isinstance(m, nn.Linear)]
