@@ -130,10 +130,14 @@ def stopped_table(runs: list[dict[str, Any]], intro: str, seconds: str) -> list[
 
 
 def write_page(lines: list[str], path: Path) -> str:
-    """Print a results page (its markdown ``lines``) and write it to ``path``; the text."""
+    """Print a results page (its markdown ``lines``) and write it to ``path`` (whole or not at
+    all: a temporary beside it, renamed); the text."""
+    from dronecap.files import atomic_output
+
     text = "\n".join(lines) + "\n"
     print(text)
-    path.write_text(text)
+    with atomic_output(path) as tmp:
+        tmp.write_text(text)
     return text
 
 

@@ -22,6 +22,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import torch
+from _runs import write_page
 from snapshot import RESULTS
 from train_speed import as_trained, lego
 
@@ -147,12 +148,7 @@ def main() -> None:
         "",
         *table(rows),
     ]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    path = RESULTS / "step_split.md"
-    tmp = path.with_suffix(".md.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    write_page(lines, RESULTS / "step_split.md")
 
 
 if __name__ == "__main__":

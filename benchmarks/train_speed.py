@@ -40,6 +40,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _runs import write_page
 from scene_sized import build_scene
 from snapshot import DATA, RESULTS, unpack
 
@@ -251,10 +252,7 @@ def main() -> None:
         "|---|---:|---:|---|",
         *[f"| {a} | {b} | {c} | {d} |" for a, b, c, d in rows],
     ]
-    text = "\n".join(lines) + "\n"
-    print(text)
-
-    (RESULTS / ("train_speed_steps.md" if args.only else "train_speed.md")).write_text(text)
+    write_page(lines, RESULTS / ("train_speed_steps.md" if args.only else "train_speed.md"))
 
 
 if __name__ == "__main__":

@@ -30,9 +30,9 @@ class RayBatch(NamedTuple):
     frame: torch.Tensor  # [R] int64 training-frame index
     radius: torch.Tensor  # [R] pixel distance from the principal point (nerf.photometric)
 
-    def head(self, n: int) -> RayBatch:
-        """The first ``n`` rays."""
-        return RayBatch(*(t[:n] for t in self))
+    def rows(self, a: int, b: int) -> RayBatch:
+        """Rays ``a`` to ``b - 1`` (views, no copy)."""
+        return RayBatch(*(t[a:b] for t in self))
 
 
 def draw_rays(
@@ -116,5 +116,5 @@ def whole_rays(rays: RayBatch, s: Samples, batch_samples: int) -> tuple[RayBatch
         s = Samples(
             s.ray_indices[:n], s.t_starts[:n], s.t_ends[:n], s.counts[:keep], encoded=enc, unit=unit
         )
-        rays = rays.head(keep)
+        rays = rays.rows(0, keep)
     return rays, s

@@ -295,11 +295,9 @@ class Field(nn.Module):
         gradients up to float32 summation order (in fp32 products).
         """
         enc = self.encoding(unit, cached=encoded)
-        if self.prepare_kernels():
-            return field_outputs(
-                enc, dir_enc, ray_indices, self.density_mlp, self.color_mlp, MAX_LOG_DENSITY,
-                self._amx_bf16(),
-            )  # fmt: skip
+        kernel_args = self.mlp_kernel_args()
+        if kernel_args is not None:
+            return field_outputs(enc, dir_enc, ray_indices, *kernel_args)
         sigma, geo = self.geometry_from_encoding(enc)
         return self.color_from_encoding(geo, dir_enc[ray_indices]), sigma
 

@@ -50,10 +50,9 @@ def field_outputs(
     encoded: Tensor,
     dir_enc: Tensor,
     ray_indices: Tensor,
-    density_mlp: nn.Sequential,
-    color_mlp: nn.Sequential,
+    weights: list[Tensor],
+    bf16: bool,
     max_log_density: float,
-    bf16: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """Colour and density of samples through both MLPs and their activations, with autograd.
 
@@ -61,10 +60,11 @@ def field_outputs(
         encoded: [N, E] the samples' hash encodings (gradient flows back to them).
         dir_enc: [R, S] SH encoding of each ray's direction (no gradient).
         ray_indices: [N] int64, each sample's ray.
-        density_mlp, color_mlp: as :func:`usable` accepts; their weights get gradients.
-        max_log_density: the density logit's clamp (``nerf.field.trunc_exp``).
+        weights: the five weights of MLPs :func:`usable` accepts (:func:`mlp_weights`); they
+            get gradients.
         bf16: multiply bf16-rounded inputs on the AMX tiles (float32 sums, outputs and weight
             gradients); only where :func:`amx` is true.
+        max_log_density: the density logit's clamp (``nerf.field.trunc_exp``).
 
     Returns:
         colour [N, C] in (0, 1) (sigmoid of the colour MLP's outputs) and density [N] per
@@ -72,7 +72,6 @@ def field_outputs(
         float32.
     """
     lim = float(max_log_density)
-    weights = mlp_weights(density_mlp, color_mlp)
     return _FusedMLP.apply(encoded, dir_enc.detach(), ray_indices, bf16, lim, *weights)
 
 

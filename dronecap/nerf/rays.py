@@ -121,7 +121,7 @@ def ray_aabb(
     )
     ext = kernel("march", backend) if plain else None
     if ext is not None:
-        return tuple(ext.ray_aabb(origins, dirs, aabb))
+        return tuple(ext.ray_aabb(origins, dirs, aabb, TINY))
     safe = torch.where(dirs.abs() < TINY, torch.where(dirs < 0, -TINY, TINY), dirs)
     inv = 1.0 / safe
     t0 = (aabb[0] - origins) * inv

@@ -202,7 +202,7 @@ class Trainer:
         """
         n_rays, total = rays.target.shape[0], 0.0
         for a, b, tile in tiles(s, self.cfg.tile_samples):
-            part = RayBatch(*(t[a:b] for t in rays))
+            part = rays.rows(a, b)
             total += train_pass.tile_loss(
                 self.field, self.photometric, part, tile, n_rays, self.cfg.distortion, self.aabb
             )

@@ -9,7 +9,7 @@ import torch
 from dronecap.nerf.backend import kernel
 from dronecap.nerf.config import preset
 from dronecap.nerf.field import MAX_LOG_DENSITY, Field, trunc_exp
-from dronecap.nerf.mlp_kernel import amx, field_outputs, usable
+from dronecap.nerf.mlp_kernel import amx, field_outputs, mlp_weights, usable
 
 AABB = np.array([[-1.0, -1, -1], [1, 1, 1]])
 needs_kernel = pytest.mark.skipif(
@@ -38,7 +38,8 @@ def _activated(h: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
 
 
 def _fused(f: Field, enc, dir_enc, ri, bf16: bool = False) -> torch.Tensor:
-    rgb, sigma = field_outputs(enc, dir_enc, ri, f.density_mlp, f.color_mlp, MAX_LOG_DENSITY, bf16)
+    weights = mlp_weights(f.density_mlp, f.color_mlp)
+    rgb, sigma = field_outputs(enc, dir_enc, ri, weights, bf16, MAX_LOG_DENSITY)
     return torch.cat([rgb, sigma[:, None]], 1)
 
 

@@ -386,8 +386,10 @@ torch::Tensor sh_encode(torch::Tensor dirs, int64_t degree) {
 
 // Slab intersection of rays origins [N, 3] + t dirs [N, 3] with the box aabb [2, 3] (min,
 // max): {t_near [N] (>= 0), t_far [N] (t_near where the ray misses), hit bool [N]}, with
-// nerf/rays.py's ray_aabb arithmetic operation by operation (NaN propagates as there).
-std::vector<torch::Tensor> ray_aabb(torch::Tensor origins, torch::Tensor dirs, torch::Tensor aabb) {
+// nerf/rays.py's ray_aabb arithmetic operation by operation (NaN propagates as there);
+// direction components below `tiny` in magnitude count as parallel to a slab (its TINY).
+std::vector<torch::Tensor> ray_aabb(torch::Tensor origins, torch::Tensor dirs, torch::Tensor aabb,
+                                    double tiny) {
   for (const auto* t : {&origins, &dirs, &aabb})
     TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->dim() == 2 && t->size(1) == 3,
                 "origins, dirs [N, 3] and aabb [2, 3] must be float32");
@@ -402,7 +404,7 @@ std::vector<torch::Tensor> ray_aabb(torch::Tensor origins, torch::Tensor dirs, t
   // torch.minimum / maximum / amax / amin / clamp_min: NaN wins
   auto lo = [](float a, float c) { return std::isnan(a) || std::isnan(c) ? NAN : (a < c ? a : c); };
   auto hi = [](float a, float c) { return std::isnan(a) || std::isnan(c) ? NAN : (a > c ? a : c); };
-  constexpr float kTiny = 1e-12f;  // nerf/rays.py's TINY
+  const float kTiny = float(tiny);
   for (int64_t i = 0; i < n; ++i) {
     float t_near = -INFINITY, t_far = INFINITY;
     for (int k = 0; k < 3; ++k) {
