@@ -34,6 +34,8 @@ KERNELS: dict[str, tuple[str, tuple[str, ...]]] = {
     # no fused multiply-add: the float32 results match the reference's tensor arithmetic
     "march": ("march.cpp", ("-ffp-contract=off",)),
     "mlp": ("mlp.cpp", ()),
+    # torch's Adam in torch's order of operations; sqrt without errno, so that it vectorises
+    "adam": ("adam.cpp", ("-ffp-contract=off", "-fno-math-errno")),
 }
 FALLBACK_NOTICE = (
     "dronecap: no working C++ compiler ({err}); using the PyTorch reference kernels, "

@@ -58,10 +58,11 @@ def train_tile(
         color = march.composite(sigma, rgb, t0, t1, ri, bg)
     divisor = n_rays * rays.target.shape[1]
     if photometric.identity():  # the loss's gradient by hand: no autograd at all
-        loss, g = huber_loss_and_grad(color, rays.target, divisor)
+        loss, g = huber_loss_and_grad(color, rays.target, divisor, march)
     else:  # the loss and the photometric model through autograd, from the colour on
         color.requires_grad_(True)
-        loss = huber_loss(photometric(color, rays.frame, rays.radius), rays.target, divisor)
+        seen = photometric(color, rays.frame, rays.radius)
+        loss = huber_loss(seen, rays.target, divisor, march)
         loss.backward()
         g = color.grad
     with torch.no_grad():

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from . import fused_pass
+from .backend import kernel
 from .batch import RayBatch
 from .field import Field
 from .losses import huber_loss
@@ -49,7 +50,8 @@ def autograd_tile(
     """:func:`tile_loss` through autograd (any configuration)."""
     color, spread = render_rays(field, rays.origins, rays.dirs, s, rays.bg, distortion_weight, aabb)
     seen = photometric(color, rays.frame, rays.radius)
-    loss = huber_loss(seen, rays.target, n_rays * rays.target.shape[1])
+    ext = kernel("march", field.encoding.backend)  # the loss as the graph-free tile has it
+    loss = huber_loss(seen, rays.target, n_rays * rays.target.shape[1], ext)
     if spread is not None:
         loss = loss + distortion_weight * spread.sum() / n_rays
     loss.backward()

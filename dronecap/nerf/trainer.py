@@ -28,6 +28,7 @@ from dronecap.datasets.format import Dataset
 from dronecap.errors import InputError
 
 from . import adam_step, budget, carve, compaction, occupancy, train_pass
+from .backend import kernel
 from .batch import RayBatch, draw_rays, whole_rays
 from .checkpoint import checkpoint_resolved, read_checkpoint, write_checkpoint
 from .config import TrainConfig
@@ -109,6 +110,7 @@ class Trainer:
         self.camera: Camera | None = None
         self.backend = backend
         self.march = march_function(backend)
+        self.adam = kernel("adam", backend) if self.device.type == "cpu" else None
         self.field.prepare_kernels()  # kernels built before any step is timed
 
     def set_data(self, train: Dataset) -> None:
@@ -231,7 +233,7 @@ class Trainer:
             for p in group["params"]:  # over, no sums
                 p.grad = None
         loss = self.accumulate_gradients(rays, s)
-        ok = math.isfinite(loss) and adam_step.step(self.optimizer)  # not with inf/NaN gradients
+        ok = math.isfinite(loss) and adam_step.step(self.optimizer, self.adam)  # not with inf/NaN
         if ok:
             self.field.encoding.round_storage_()
             self._bad_steps = 0

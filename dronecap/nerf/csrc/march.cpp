@@ -14,7 +14,8 @@
 // Also here: compositing packed samples into ray colours and its backward (nerf/volrend.py's
 // `composite`), one pass over the samples in ray order; and the rays and target colours of a
 // training step's random pixels (nerf/batch.py's `draw_rays`), one pass over the rays; and the
-// SH encoding of the rays' directions (nerf/sh.py's `sh_encode`).
+// SH encoding of the rays' directions (nerf/sh.py's `sh_encode`); and the training loss
+// (nerf/losses.py's `huber_loss_and_grad`).
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
@@ -422,6 +423,32 @@ std::vector<torch::Tensor> ray_aabb(torch::Tensor origins, torch::Tensor dirs, t
   return {near, far, hit};
 }
 
+// The Huber loss of rendered colours (nerf/losses.py's huber_loss_and_grad) in one pass: of
+// d = pred - target (float32 [R, C]), the sum of d^2 / (2 delta) where |d| < delta and of
+// |d| - delta / 2 elsewhere (in double), over divisor; and its gradient d / delta or sign(d),
+// over divisor, float32 operations in the reference's order. NaN and inf reach the loss.
+// Returns {loss (a float32 scalar), gradient [R, C]}.
+std::vector<torch::Tensor> huber(torch::Tensor pred, torch::Tensor target, int64_t divisor,
+                                 double delta) {
+  TORCH_CHECK(pred.scalar_type() == torch::kFloat32 && target.scalar_type() == torch::kFloat32 &&
+                  pred.sizes() == target.sizes() && divisor > 0,
+              "pred and target: float32 of one shape; divisor > 0");
+  const auto p = pred.contiguous(), t = target.contiguous();
+  auto grad = torch::empty_like(p);
+  const float *pp = p.data_ptr<float>(), *tp = t.data_ptr<float>();
+  float* gp = grad.data_ptr<float>();
+  const float dl = float(delta), half = float(0.5 * delta), div = float(divisor);
+  double sum = 0.0;
+  for (int64_t i = 0; i < p.numel(); ++i) {
+    const float d = pp[i] - tp[i], z = std::fabs(d);
+    const bool inner = z < dl;
+    sum += inner ? 0.5f * z * z / dl : z - half;
+    const float sign = d > 0.0f ? 1.0f : d < 0.0f ? -1.0f : d;  // 0 and NaN stay themselves
+    gp[i] = (inner ? d / dl : sign) / div;
+  }
+  return {torch::full({}, float(sum) / div, p.options()), grad};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // the GIL is released while the kernel runs: another Python thread can work meanwhile
   m.def("march", &march, "occupancy-grid ray marching into packed samples",
@@ -435,5 +462,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("sh_encode", &sh_encode, "real SH basis of unit directions",
         py::call_guard<py::gil_scoped_release>());
   m.def("ray_aabb", &ray_aabb, "slab intersection of rays with a box",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("huber", &huber, "Huber loss of colours and its gradient",
         py::call_guard<py::gil_scoped_release>());
 }
