@@ -96,7 +96,10 @@ def _count_step(optimizer: torch.optim.Adam, stepping: list[dict]) -> None:
     them again."""
     states = [optimizer.state.get(p, {}) for g in optimizer.param_groups for p in g["params"]]
     first = stepping[0]["step"]
-    if len(stepping) == len(states) and all(torch.equal(s["step"], first) for s in stepping):
+    shared = all(s["step"] is first for s in stepping)  # linked already: no comparisons
+    if len(stepping) == len(states) and (
+        shared or all(torch.equal(s["step"], first) for s in stepping)
+    ):
         for st in stepping:
             st["step"] = first
         first.add_(1)

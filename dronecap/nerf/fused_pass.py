@@ -23,6 +23,7 @@ from .backend import kernel
 from .batch import RayBatch
 from .field import Field
 from .hashgrid import table_backward
+from .kernel_args import f32, i64
 from .losses import huber_loss, huber_loss_and_grad
 from .marching import Samples
 from .photometric import Photometric
@@ -47,10 +48,9 @@ def train_tile(
     if s.t_starts.device.type != "cpu":
         return None
     weights, bf16, lim = mlp
-    t0, t1 = s.t_starts.float().contiguous(), s.t_ends.float().contiguous()
-    ri = s.ray_indices.long().contiguous()
+    t0, t1, ri = f32(s.t_starts), f32(s.t_ends), i64(s.ray_indices)
     behind = field.behind(rays.dirs, rays.bg)  # with autograd for a far field
-    bg = behind.detach().expand(rays.dirs.shape[0], -1).float().contiguous()
+    bg = f32(behind.detach().expand(rays.dirs.shape[0], -1))
     with torch.no_grad():
         dir_enc = field.dir_encoding(rays.dirs)
         outputs, args = mlp_kernel.forward(s.encoded, dir_enc, ri, weights, bf16, lim)
@@ -66,12 +66,12 @@ def train_tile(
         loss.backward()
         g = color.grad
     with torch.no_grad():
-        g = g.float().contiguous()
+        g = f32(g)
         d_sigma, d_rgb, d_bg = march.composite_backward(g, sigma, rgb, t0, t1, ri, bg)
         grads = mlp_kernel.backward(d_rgb, d_sigma, outputs, args, weights, bf16, lim)
         table = field.encoding.table
         leaf = table if field.encoding.inplace_grad else None  # its gradient added in place
-        _add_grad(table, table_backward(grads[0], s.unit.float().contiguous(), layout, leaf))
+        _add_grad(table, table_backward(grads[0], f32(s.unit), layout, leaf))
         for w, gw in zip(weights, grads[1:], strict=True):
             _add_grad(w, gw)
     if behind.requires_grad:  # the far field's colours

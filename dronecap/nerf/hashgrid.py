@@ -33,6 +33,7 @@ from torch import Tensor
 
 from .backend import check_backend, kernel
 from .backend import load as backend_load
+from .kernel_args import f32, i64
 from .levels import level_offsets, level_resolutions
 
 __all__ = [
@@ -256,11 +257,11 @@ class HashGrid(torch.nn.Module):
         """
         if not self._fusable():
             return None
-        origins, dirs, box = (t.detach().float() for t in rays)
+        origins, dirs, box = (f32(t) for t in rays)
         t0, t1, ri = samples
         return Visible(*load_extension().visible(
-            origins, dirs, t0.float(), t1.float(), ri.long(), box, *self._table_args(),
-            w1.detach().float(), w2.detach().float(), max_log_density, min_transmittance, bf16,
+            origins, dirs, f32(t0), f32(t1), i64(ri), box, *self._table_args(),
+            f32(w1), f32(w2), max_log_density, min_transmittance, bf16,
         ))  # fmt: skip
 
     @torch.no_grad()
@@ -310,7 +311,7 @@ class HashGrid(torch.nn.Module):
 
     def _table_args(self) -> tuple:
         """The table and level layout as the C++ kernels take them."""
-        table = self.table.detach().contiguous()
+        table = f32(self.table)
         return table, self.resolutions, self.offsets, self.log2_hashmap
 
     @torch.no_grad()
@@ -372,7 +373,7 @@ def table_backward(
     ``grad_out`` [N, L * F]: the table gradient, added into ``leaf.grad`` (None returned) or,
     without a leaf, returned. ``args``: (rows, features, resolutions, offsets, log2_hashmap,
     mode) as the kernel takes them (:meth:`HashGrid.backward_args`)."""
-    ext, grad_out = load_extension(), grad_out.float().contiguous()
+    ext, grad_out = load_extension(), f32(grad_out)
     if leaf is None:
         return ext.backward(grad_out, x, _EMPTY, *args)
     if leaf.grad is None:  # the kernel zeroes the new gradient level by level itself

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from .backend import kernel
 from .backend import load as backend_load
+from .kernel_args import f32
 from .marching import Samples
 from .marching import march as march_reference
 from .occupancy import GridState
@@ -66,12 +67,12 @@ def march(
         offsets = torch.full((r,), 0.5)
     occupied = torch.zeros(0, dtype=torch.bool) if grid is None else grid.occupied
     ray_indices, t_starts, t_ends, counts, t_resume = load_extension().march(
-        *(t.float().contiguous() for t in (origins, dirs, t_near, t_far)),
+        *(f32(t) for t in (origins, dirs, t_near, t_far)),
         float(step),
         occupied.contiguous(),
-        aabb.float().contiguous(),
+        f32(aabb),
         int(max_samples),
-        offsets.float().contiguous(),
+        f32(offsets),
         int(max_kept),
     )
     return Samples(ray_indices, t_starts, t_ends, counts, t_resume)

@@ -22,6 +22,7 @@ from torch import Tensor, nn
 
 from .backend import kernel
 from .backend import load as backend_load
+from .kernel_args import f32, i64
 
 MAX_HIDDEN = 128  # the kernel's tiles hold rows of at most this many floats
 MAX_COLOR = 16  # colour channels the kernel's output tile holds
@@ -83,8 +84,8 @@ def mlp_weights(density_mlp: nn.Sequential, color_mlp: nn.Sequential) -> list[Te
 def forward(encoded, dir_enc, ray_indices, weights, bf16: bool, lim: float) -> tuple:
     """The kernel's forward, without autograd: (rgb [N, C], sigma [N], logit) and the
     arguments :func:`backward` takes again (the inputs as the kernel saw them)."""
-    args = (encoded.float().contiguous(), dir_enc.float().contiguous(), ray_indices.long())
-    rgb, sigma, logit = backend_load("mlp").forward(*args, *(w.float() for w in weights), bf16, lim)
+    args = (f32(encoded), f32(dir_enc), i64(ray_indices))
+    rgb, sigma, logit = backend_load("mlp").forward(*args, *(f32(w) for w in weights), bf16, lim)
     return (rgb, sigma, logit), args
 
 
@@ -92,9 +93,9 @@ def backward(g_rgb, g_sigma, outputs, args, weights, bf16: bool, lim: float) -> 
     """The kernel's backward: [grad of the encodings, grads of the five weights], given the
     gradients of colour and density (None: zero) and :func:`forward`'s outputs and args."""
     rgb, sigma, _ = outputs
-    g_rgb = torch.zeros_like(rgb) if g_rgb is None else g_rgb.float()
-    g_sigma = torch.zeros_like(sigma) if g_sigma is None else g_sigma.float()
-    ws = [w.float() for w in weights]
+    g_rgb = torch.zeros_like(rgb) if g_rgb is None else f32(g_rgb)
+    g_sigma = torch.zeros_like(sigma) if g_sigma is None else f32(g_sigma)
+    ws = [f32(w) for w in weights]
     return backend_load("mlp").backward(g_rgb, g_sigma, *outputs, *args, *ws, bf16, lim)
 
 
