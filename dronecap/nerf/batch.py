@@ -31,7 +31,9 @@ class RayBatch(NamedTuple):
     radius: torch.Tensor  # [R] pixel distance from the principal point (nerf.photometric)
 
     def rows(self, a: int, b: int) -> RayBatch:
-        """Rays ``a`` to ``b - 1`` (views, no copy)."""
+        """Rays ``a`` to ``b - 1`` (views, no copy; the batch itself when that is all of it)."""
+        if a == 0 and b >= self.origins.shape[0]:
+            return self
         return RayBatch(*(t[a:b] for t in self))
 
 

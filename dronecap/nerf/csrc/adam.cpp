@@ -96,8 +96,11 @@ void adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> gra
   // sqrt(1 - beta2^t), 1 - beta1, 1 - beta2
   std::vector<float> size(n), root(n), c1(n), c2(n), b2(n), e(n), wd(n);
   for (size_t i = 0; i < n; ++i) {
-    TORCH_CHECK(steps[i].numel() == 1, "a step count is a scalar tensor");
-    const double t = steps[i].item<double>();
+    TORCH_CHECK(steps[i].numel() == 1 && steps[i].device().is_cpu(),
+                "a step count is a scalar CPU tensor");
+    const double t = steps[i].scalar_type() == torch::kFloat32  // torch's (no dispatch to read)
+                         ? double(*steps[i].data_ptr<float>())
+                         : steps[i].item<double>();
     size[i] = float(lrs[i] / (1 - std::pow(beta1s[i], t)));
     root[i] = float(std::sqrt(1 - std::pow(beta2s[i], t)));
     c1[i] = float(1 - beta1s[i]), c2[i] = float(1 - beta2s[i]), b2[i] = float(beta2s[i]);
