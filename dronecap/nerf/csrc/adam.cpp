@@ -4,9 +4,8 @@
 // torch's fused Adam runs one parallel loop per tensor, and its finiteness check (the mixed-
 // precision unscale pass) another per tensor; a step of the default model spends ~0.4 ms in
 // them at two threads, mostly waiting on memory (~13 MB move through the caches). Here the
-// tensors are laid end to end and each thread takes one contiguous run of the whole: the
-// same elements in the check and in the update, so the update finds them still in that core's
-// cache, and no small tensor pays for a parallel loop of its own.
+// tensors are laid end to end and cut into pieces that the threads take as they come free:
+// no small tensor pays for a parallel loop of its own.
 //
 // The update is torch's (torch.optim.Adam, L2 weight decay, no AMSGrad), with the operations
 // in the order of torch's vectorised CPU kernel as torch 2.13's x86 build compiles it: built
@@ -40,16 +39,22 @@ std::vector<int64_t> layout(const std::vector<torch::Tensor>& ts) {
   return start;
 }
 
-// Calls fn(i, a, b) for the part [a, b) of tensor i (element offsets within it) that falls in
-// this thread's run of the layout `start`.
+constexpr int64_t kPiece = 1 << 14;  // elements per piece handed to a thread
+
+// Calls fn(i, a, b) for the parts [a, b) of tensors i (element offsets within it) of the pieces
+// of the layout `start` that this thread takes: pieces go to whichever thread is free, so that
+// one that starts late (woken from sleep after Python ran between kernels) does not hold the
+// other up at the end (-0.2 ms of a 5.3 ms lego step at two threads against an even split).
 template <typename F>
 void for_my_parts(const std::vector<int64_t>& start, F fn) {
-  const int64_t total = start.back();
-  const int nt = omp_get_num_threads(), t = omp_get_thread_num();
-  const int64_t lo = total * t / nt, hi = total * (t + 1) / nt;
-  for (size_t i = 0; i + 1 < start.size(); ++i) {
-    const int64_t a = std::max(lo, start[i]), b = std::min(hi, start[i + 1]);
-    if (a < b) fn(i, a - start[i], b - start[i]);
+  const int64_t total = start.back(), pieces = (total + kPiece - 1) / kPiece;
+#pragma omp for schedule(dynamic, 1)
+  for (int64_t q = 0; q < pieces; ++q) {
+    const int64_t lo = q * kPiece, hi = std::min(total, lo + kPiece);
+    for (size_t i = 0; i + 1 < start.size(); ++i) {
+      const int64_t a = std::max(lo, start[i]), b = std::min(hi, start[i + 1]);
+      if (a < b) fn(i, a - start[i], b - start[i]);
+    }
   }
 }
 
