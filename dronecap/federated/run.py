@@ -249,16 +249,7 @@ def rebuild_grid(trainer: Any, passes: int = REBUILD_PASSES) -> None:
         occupancy.init_state(trainer.grid_cfg, trainer.device), trainer.grid.allowed
     )
     for _ in range(passes):
-        grid = occupancy.update(
-            trainer.grid_cfg,
-            grid,
-            0,
-            trainer.field.density,
-            trainer.aabb,
-            trainer.step_size,
-            trainer.generator,
-            trainer.field.grid_refresh,
-        )
+        grid = trainer.updated_grid(grid, 0)
     trainer.grid = grid
 
 

@@ -210,21 +210,21 @@ class Trainer:
             )
         return total
 
+    def updated_grid(self, grid: occupancy.GridState, step: int) -> occupancy.GridState:
+        """``grid`` after one occupancy update at optimizer step ``step`` by this field (the
+        fused C++ query and draws where they run)."""
+        draws = kernel("march", self.backend) if self.device.type == "cpu" else None
+        return occupancy.update(
+            self.grid_cfg, grid, step, self.field.density, self.aabb, self.step_size,
+            self.generator, self.field.grid_refresh, draws,
+        )  # fmt: skip
+
     def train_step(self) -> dict:
         """One optimizer step; returns its log {step, loss, psnr, samples, rays, ms, lr,
         skipped}."""
         t0 = time.perf_counter()
         if occupancy.due(self.grid_cfg, self.step):
-            self.grid = occupancy.update(
-                self.grid_cfg,
-                self.grid,
-                self.step,
-                self.field.density,
-                self.aabb,
-                self.step_size,
-                self.generator,
-                self.field.grid_refresh,
-            )
+            self.grid = self.updated_grid(self.grid, self.step)
         lr = self._lr(self.step)
         for i, group in enumerate(self.optimizer.param_groups):
             group["lr"] = lr * (self.cfg.photometric_lr_ratio if i == PHOTOMETRIC_GROUP else 1.0)

@@ -150,3 +150,63 @@ def test_the_fused_grid_update_gives_the_torch_ones_grid(hull, step):
     assert torch.equal(fused.occupied, plain.occupied)
     assert fused.occupied.any() and not fused.occupied.all()
     assert (fused.allowed is None) == (not hull) and (fused.pool is None) == (not hull)
+
+
+def _draws():
+    ext = kernel("march", "auto")
+    if ext is None:
+        pytest.skip("C++ marching kernel unavailable")
+    return ext.grid_draws
+
+
+def test_the_kernels_grid_draws_follow_the_update_rules():
+    draws = _draws()
+    occupied = torch.zeros(16**3, dtype=torch.bool)
+    occupied[torch.tensor([5, 77, 300, 4000])] = True
+    pool = torch.arange(0, 16**3, 3)
+    cells, jitter = draws(occupied, pool, 0, True, 1)  # warm-up: every allowed cell
+    assert torch.equal(cells, pool) and jitter.shape == (pool.numel(), 3)
+    cells, jitter = draws(occupied, pool, 5000, False, 2)  # a quarter from each
+    assert cells.shape == (10000,) and jitter.shape == (10000, 3)
+    assert torch.isin(cells[:5000], pool).all()
+    assert torch.isin(cells[5000:], occupied.nonzero().squeeze(1)).all()
+    assert len(cells[5000:].unique()) == 4  # each occupied cell drawn
+    assert cells[:5000].unique().numel() > 0.6 * pool.numel()  # spread over the pool
+    assert 0.0 <= float(jitter.min()) and float(jitter.max()) < 1.0
+    assert abs(float(jitter.mean()) - 0.5) < 0.01 and abs(float(jitter.std()) - 12**-0.5) < 0.01
+    cells, _ = draws(torch.zeros(16**3, dtype=torch.bool), torch.zeros(0, dtype=torch.int64),
+                     100, False, 3)  # fmt: skip
+    assert cells.shape == (100,) and int(cells.max()) < 16**3  # none occupied: uniform only
+
+
+def test_the_kernels_grid_draws_do_not_depend_on_the_threads():
+    draws, threads = _draws(), torch.get_num_threads()
+    occupied = torch.rand(64**3, generator=torch.Generator().manual_seed(0)) < 0.3
+    empty = torch.zeros(0, dtype=torch.int64)
+    try:
+        torch.set_num_threads(1)
+        one = draws(occupied, empty, 40000, False, 7)
+        torch.set_num_threads(2)
+        two = draws(occupied, empty, 40000, False, 7)
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(a, b) for a, b in zip(one, two, strict=True))
+    other = draws(occupied, empty, 40000, False, 8)
+    assert not torch.equal(one[1], other[1])  # another seed, other points
+
+
+def test_the_fused_grid_update_gives_the_torch_ones_grid_with_the_kernels_draws():
+    field = Field(preset("test").replace(n_max=64, mlp_dtype="fp32"), 3, BOX.numpy())
+    with torch.no_grad():
+        field.encoding.table.uniform_(-1, 1)
+    ext = kernel("march", "auto")
+    if ext is None or kernel("hashgrid", "auto") is None:
+        pytest.skip("C++ kernels unavailable")
+    cfg = occupancy.GridConfig(res=16, warmup=100)
+    state = occupancy.init_state(cfg)
+    out = []
+    for refresh in (field.grid_refresh, None):
+        g = torch.Generator().manual_seed(1)
+        out.append(occupancy.update(cfg, state, 300, field.density, BOX, 0.05, g, refresh, ext))
+    assert torch.allclose(out[0].density, out[1].density, rtol=1e-5, atol=1e-8)
+    assert torch.equal(out[0].occupied, out[1].occupied)

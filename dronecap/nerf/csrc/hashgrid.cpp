@@ -663,7 +663,7 @@ struct DensityQuery {
     {
       std::vector<float> scratch(ep ? 0 : kFuseBlock * out_dim);
       begin();
-#pragma omp for schedule(static)
+#pragma omp for schedule(dynamic, 1)  // a thread woken late takes fewer blocks
       for (int64_t b = 0; b < blocks; ++b) {
         const int64_t n0 = b * kFuseBlock, m = std::min(n, n0 + kFuseBlock) - n0;
         block(xp + 3 * n0, m, rp + n0, ep ? ep + n0 * out_dim : scratch.data());
@@ -924,12 +924,16 @@ std::vector<torch::Tensor> grid_refresh(torch::Tensor density, torch::Tensor all
   auto fresh = torch::empty({n}, old.options());
   float* np = fresh.data_ptr<float>();
   const float d = float(decay), lim = float(max_log_density), step = float(step_size);
-#pragma omp parallel for schedule(static) num_threads(nt)
-  for (int64_t i = 0; i < n; ++i) np[i] = std::max(op[i] * d, 0.0f);
-  for (int64_t i = 0; i < m; ++i) {
-    const float t = std::exp(std::fmin(std::fmax(raw[i], -lim), lim)) * step;
-    if (!std::isnan(t)) np[cp[i]] = std::max(np[cp[i]], t);
+#pragma omp parallel num_threads(nt)
+  {
+#pragma omp for schedule(static) nowait
+    for (int64_t i = 0; i < n; ++i) np[i] = std::max(op[i] * d, 0.0f);
+#pragma omp for schedule(static)
+    for (int64_t i = 0; i < m; ++i)  // the points' thicknesses, in place of their raw densities
+      raw[i] = std::exp(std::fmin(std::fmax(raw[i], -lim), lim)) * step;
   }
+  for (int64_t i = 0; i < m; ++i)  // the cells' maxima in order (cells repeat across points)
+    if (!std::isnan(raw[i])) np[cp[i]] = std::max(np[cp[i]], raw[i]);
   double sum = 0.0;
 #pragma omp parallel for schedule(static) num_threads(nt) reduction(+ : sum)
   for (int64_t i = 0; i < n; ++i) sum += np[i];

@@ -15,7 +15,8 @@
 // `composite`), one pass over the samples in ray order; and the rays and target colours of a
 // training step's random pixels (nerf/batch.py's `draw_rays`), one pass over the rays; and the
 // SH encoding of the rays' directions (nerf/sh.py's `sh_encode`); and the training loss
-// (nerf/losses.py's `huber_loss_and_grad`).
+// (nerf/losses.py's `huber_loss_and_grad`); and the random cells and points of an occupancy-grid
+// update (nerf/occupancy.py).
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
@@ -449,6 +450,67 @@ std::vector<torch::Tensor> huber(torch::Tensor pred, torch::Tensor target, int64
   return {torch::full({}, float(sum) / div, p.options()), grad};
 }
 
+namespace {
+
+// splitmix64: the random number of index i of a stream (seed), so that a draw does not depend
+// on which thread makes it.
+inline uint64_t mix(uint64_t seed, uint64_t i) {
+  uint64_t z = seed + (i + 1) * 0x9e3779b97f4a7c15ull;
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  return z ^ (z >> 31);
+}
+
+// Uniform in [0, k) (the high word of a 64 x 64-bit product: bias below k / 2^64).
+inline int64_t below(uint64_t r, int64_t k) {
+  return int64_t((static_cast<unsigned __int128>(r) * uint64_t(k)) >> 64);
+}
+
+}  // namespace
+
+// The cells an occupancy-grid update samples and a random point in each (nerf/occupancy.py's
+// draws, with this kernel's own random numbers from `seed`): in warm-up every cell of `pool`
+// (int64 [A], the allowed cells; empty: every cell of the grid); after it, `quarter` cells
+// uniformly from the pool (or the grid) and `quarter` uniformly from the occupied ones
+// (occupied: bool [res^3]; none when no cell is). Returns {cells int64 [M], jitter float32
+// [M, 3] uniform in [0, 1)}: the same for any thread count.
+std::vector<torch::Tensor> grid_draws(torch::Tensor occupied, torch::Tensor pool, int64_t quarter,
+                                      bool warm, int64_t seed) {
+  TORCH_CHECK(occupied.scalar_type() == torch::kBool && occupied.is_contiguous() &&
+                  occupied.dim() == 1, "occupied must be a contiguous bool [res^3] tensor");
+  TORCH_CHECK(pool.numel() == 0 || (pool.scalar_type() == torch::kInt64 && pool.is_contiguous()),
+              "pool must be contiguous int64 [A] or empty");
+  TORCH_CHECK(quarter >= 0, "quarter must be >= 0");
+  const int64_t n = occupied.numel(), a = pool.numel();
+  const int64_t* pp = a ? pool.data_ptr<int64_t>() : nullptr;
+  const uint64_t s = uint64_t(seed);
+  const auto i64 = torch::dtype(torch::kInt64);
+  torch::Tensor cells;
+  if (warm) {
+    cells = a ? pool.clone() : torch::arange(n, i64);
+  } else {
+    std::vector<int64_t> occ;  // the occupied cells, in order
+    const bool* op = occupied.data_ptr<bool>();
+    for (int64_t i = 0; i < n; ++i)
+      if (op[i]) occ.push_back(i);
+    const int64_t k = int64_t(occ.size()), span = a ? a : n;
+    cells = torch::empty({k ? 2 * quarter : quarter}, i64);
+    int64_t* cp = cells.data_ptr<int64_t>();
+    for (int64_t i = 0; i < quarter; ++i) {
+      const int64_t u = below(mix(s, uint64_t(i)), std::max<int64_t>(span, 1));
+      cp[i] = a ? pp[u] : u;
+      if (k) cp[quarter + i] = occ[size_t(below(mix(s, uint64_t(quarter + i)), k))];
+    }
+  }
+  const int64_t m = cells.numel();
+  auto jitter = torch::empty({m, 3}, torch::dtype(torch::kFloat32));
+  float* jp = jitter.data_ptr<float>();
+  const uint64_t js = mix(s, ~uint64_t(0));  // the jitter's own stream
+#pragma omp parallel for schedule(static) num_threads(at::get_num_threads()) if (m > 16384)
+  for (int64_t i = 0; i < 3 * m; ++i) jp[i] = float(mix(js, uint64_t(i)) >> 40) * 0x1p-24f;
+  return {cells, jitter};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // the GIL is released while the kernel runs: another Python thread can work meanwhile
   m.def("march", &march, "occupancy-grid ray marching into packed samples",
@@ -464,5 +526,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("ray_aabb", &ray_aabb, "slab intersection of rays with a box",
         py::call_guard<py::gil_scoped_release>());
   m.def("huber", &huber, "Huber loss of colours and its gradient",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("grid_draws", &grid_draws, "an occupancy-grid update's cells and points",
         py::call_guard<py::gil_scoped_release>());
 }
