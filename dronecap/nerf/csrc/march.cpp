@@ -26,6 +26,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <memory>
 #include <vector>
 
 namespace {
@@ -489,26 +490,32 @@ std::vector<torch::Tensor> grid_draws(torch::Tensor occupied, torch::Tensor pool
   if (warm) {
     cells = a ? pool.clone() : torch::arange(n, i64);
   } else {
-    std::vector<int64_t> occ;  // the occupied cells, in order
-    const bool* op = occupied.data_ptr<bool>();
-    for (int64_t i = 0; i < n; ++i)
-      if (op[i]) occ.push_back(i);
-    const int64_t k = int64_t(occ.size()), span = a ? a : n;
+    std::unique_ptr<int64_t[]> occ(new int64_t[n + 1]);  // the occupied cells, in order
+    const bool* op = occupied.data_ptr<bool>();  // (written without branches, nor zeroed first)
+    int64_t k = 0;
+    for (int64_t i = 0; i < n; ++i) occ[size_t(k)] = i, k += op[i];
+    const int64_t span = a ? a : n;
     cells = torch::empty({k ? 2 * quarter : quarter}, i64);
     int64_t* cp = cells.data_ptr<int64_t>();
+#pragma omp parallel for schedule(static) num_threads(at::get_num_threads()) if (quarter > 8192)
     for (int64_t i = 0; i < quarter; ++i) {
       const int64_t u = below(mix(s, uint64_t(i)), std::max<int64_t>(span, 1));
       cp[i] = a ? pp[u] : u;
-      if (k) cp[quarter + i] = occ[size_t(below(mix(s, uint64_t(quarter + i)), k))];
+      if (k) cp[quarter + i] = occ[below(mix(s, uint64_t(quarter + i)), k)];
     }
   }
   const int64_t m = cells.numel();
-  auto jitter = torch::empty({m, 3}, torch::dtype(torch::kFloat32));
-  float* jp = jitter.data_ptr<float>();
+  const int64_t pairs = (3 * m + 1) / 2;  // two 24-bit uniforms from each 64-bit number
+  auto numbers = torch::empty({2 * pairs}, torch::dtype(torch::kFloat32));
+  float* jp = numbers.data_ptr<float>();
   const uint64_t js = mix(s, ~uint64_t(0));  // the jitter's own stream
 #pragma omp parallel for schedule(static) num_threads(at::get_num_threads()) if (m > 16384)
-  for (int64_t i = 0; i < 3 * m; ++i) jp[i] = float(mix(js, uint64_t(i)) >> 40) * 0x1p-24f;
-  return {cells, jitter};
+  for (int64_t i = 0; i < pairs; ++i) {
+    const uint64_t r = mix(js, uint64_t(i));
+    jp[2 * i] = float(uint32_t(r >> 40)) * 0x1p-24f;
+    jp[2 * i + 1] = float(uint32_t(r) >> 8) * 0x1p-24f;
+  }
+  return {cells, numbers.narrow(0, 0, 3 * m).view({m, 3})};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
