@@ -2,9 +2,10 @@
 
 The default ``scene-sized`` model on lego 160 px RGB, resolved as ``dronecap train`` resolves it
 (``train_speed.as_trained``), trained --warm steps at 1 thread; then, at 1 and 2 threads, every
-call into the compiled kernels (``nerf.backend``'s modules) and into torch's fused Adam and its
-finiteness pass is timed for --steps steps, as are the step's four sections (ray drawing,
-marching and the pre-pass; the training pass; the optimizer; the occupancy updates). A
+call into the compiled kernels (``nerf.backend``'s modules, the Adam kernel included) and into
+torch's fused Adam and its finiteness pass (where they run) is timed for --steps steps, as are
+the step's four sections (ray drawing, marching and the pre-pass; the training pass; the
+optimizer; the occupancy updates). A
 section's time less its kernels' is its glue: Python and small torch ops, during which the
 second thread only waits. The timers add ~1 us per call.
 
@@ -30,7 +31,7 @@ from dronecap.nerf import adam_step, backend, occupancy
 from dronecap.nerf.config import preset
 from dronecap.nerf.trainer import Trainer
 
-KERNELS = ("hashgrid", "mlp", "march")
+KERNELS = ("hashgrid", "mlp", "march", "adam")
 TORCH_OPS = ("_fused_adam_", "_amp_foreach_non_finite_check_and_unscale_")
 # the step's sections: (name, object, attribute, the kernels inside)
 SECTIONS = (
@@ -39,7 +40,8 @@ SECTIONS = (
     ("training pass", "trainer", "accumulate_gradients",
      ("mlp.forward", "mlp.backward", "hashgrid.backward", "march.composite",
       "march.composite_backward", "march.sh_encode")),
-    ("optimizer", adam_step, "step", tuple(f"torch.{op}" for op in TORCH_OPS)),
+    ("optimizer", adam_step, "step",
+     ("adam.all_finite", "adam.adam_step", *(f"torch.{op}" for op in TORCH_OPS))),
     ("occupancy updates", occupancy, "update", ("hashgrid.grid_refresh", "hashgrid.density")),
 )  # fmt: skip
 
@@ -82,6 +84,8 @@ def measure(tr: Trainer, threads: int, steps: int) -> tuple[dict, dict, float]:
     try:
         for name in KERNELS:
             backend._loaded[name] = _Timed(backend.load(name), name, kernels)
+        adam = tr.adam  # the trainer holds its optimizer kernel from set-up
+        tr.adam = None if adam is None else backend._loaded["adam"]
         for name in TORCH_OPS:
             originals.append((torch, name, getattr(torch, name)))
             setattr(torch, name, _timer(getattr(torch, name), f"torch.{name}", kernels))
@@ -93,6 +97,7 @@ def measure(tr: Trainer, threads: int, steps: int) -> tuple[dict, dict, float]:
         tr.train(steps)
         total = time.perf_counter() - t0
     finally:
+        tr.adam = adam
         backend._loaded.update(saved)
         for obj, attr, fn in reversed(originals):
             if obj is tr:

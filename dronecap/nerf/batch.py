@@ -105,9 +105,10 @@ def _gather(images, alpha, poses, cameras, camera_index, which, u, v, bg) -> Ray
 
 def whole_rays(rays: RayBatch, s: Samples, batch_samples: int) -> tuple[RayBatch, Samples]:
     """The first rays of a marched batch whose samples fit in ``batch_samples`` (whole rays,
-    at least one)."""
-    if s.n <= batch_samples:
-        return rays, s  # all of them (the common case: no cumulative sums)
+    at least one); the rays beyond ``s``'s (its ``counts``, when the pre-pass cut the batch
+    already) are dropped."""
+    if s.n <= batch_samples:  # all of them (the common case: no cumulative sums)
+        return rays.rows(0, s.counts.numel()), s
     cum = torch.cumsum(s.counts, 0)
     keep = max(int(torch.searchsorted(cum, torch.tensor(batch_samples), right=True)), 1)
     if keep < rays.origins.shape[0]:

@@ -37,7 +37,6 @@ def due(step: int, dropped: float) -> bool:
     return dropped >= MIN_DROPPED or step % PROBE_EVERY == 0
 
 
-@torch.no_grad()
 def visible(
     s: Samples, origins: torch.Tensor, dirs: torch.Tensor, field: Field, min_transmittance: float
 ) -> Samples:
@@ -56,12 +55,24 @@ def visible(
         ray), so rendering them gives the same colour up to the light behind the cut
         (< ``min_transmittance`` of it).
     """
+    return visible_in_batch(s, origins, dirs, field, min_transmittance, 0)[0]
+
+
+@torch.no_grad()
+def visible_in_batch(
+    s: Samples, origins: torch.Tensor, dirs: torch.Tensor, field: Field, min_transmittance: float,
+    batch: int,
+) -> tuple[Samples, int]:  # fmt: skip
+    """:func:`visible`, and the count of samples it keeps; where the fused pre-pass runs and
+    ``batch`` > 0, only the first whole rays whose kept samples fit in ``batch`` (what
+    :func:`.batch.whole_rays` would then keep; ``counts`` [R'] for those R' rays), the count
+    still before that cut."""
     if min_transmittance <= 0:
-        return s
+        return s, s.n
     ri = s.ray_indices
-    v = field.visible_samples(origins, dirs, (s.t_starts, s.t_ends, ri), min_transmittance)
+    v = field.visible_samples(origins, dirs, (s.t_starts, s.t_ends, ri), min_transmittance, batch)
     if v is not None:  # the same samples, in one C++ call
-        return Samples(*v[:4], encoded=v.encoded, unit=v.unit)  # ray_indices .. counts
+        return Samples(*v[:4], encoded=v.encoded, unit=v.unit), v.found  # ray_indices .. counts
     points = s.midpoints(origins, dirs)
     sigma, encoded = field.density_and_encoding(points)
     _, trans = packed_weights(sigma * (s.t_ends - s.t_starts), ri, s.counts.numel())
@@ -69,7 +80,8 @@ def visible(
     encoded, unit = encoded[keep], field.unit(points[keep])
     ri = ri[keep]
     counts = torch.bincount(ri, minlength=s.counts.numel())
-    return Samples(ri, s.t_starts[keep], s.t_ends[keep], counts, encoded=encoded, unit=unit)
+    kept = Samples(ri, s.t_starts[keep], s.t_ends[keep], counts, encoded=encoded, unit=unit)
+    return kept, kept.n
 
 
 @dataclass
@@ -90,9 +102,9 @@ class Tally:
         ``s``) or, without one, the samples kept: rays cut off by the batch were not worked on
         beyond marching, so a run where compaction never pays counts marched == trained."""
         kept, prepass = s, thresh > 0 and due(step, self.dropped)
-        if prepass:
-            kept = visible(s, rays.origins, rays.dirs, field, thresh)
-            self.dropped = 1.0 - kept.n / max(s.n, 1)
+        if prepass:  # the kernel cuts the batch itself (no tensor ops for it here)
+            kept, found = visible_in_batch(s, rays.origins, rays.dirs, field, thresh, batch)
+            self.dropped = 1.0 - found / max(s.n, 1)
         rays, kept = whole_rays(rays, kept, batch)
         self.marched += s.n if prepass else kept.n
         self.trained += kept.n

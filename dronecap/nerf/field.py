@@ -193,13 +193,14 @@ class Field(nn.Module):
         dirs: Tensor,
         samples: tuple[Tensor, Tensor, Tensor],
         min_transmittance: float,
+        max_kept: int = 0,
     ) -> Visible | None:
         """Compaction's pre-pass fused in C++ (:meth:`HashGrid.fused_visible`): of packed
         samples ``samples`` = (t_starts, t_ends, ray_indices) on rays ``origins``, ``dirs``
         [R, 3] (scene units), those whose transmittance is above ``min_transmittance``, with
         their hash encodings and their midpoints in the box's unit cube (what was encoded);
-        None when the fused kernels cannot run this field (:meth:`density_and_encoding`'s
-        conditions)."""
+        with ``max_kept`` > 0 only the first whole rays whose kept samples fit in it; None when
+        the fused kernels cannot run this field (:meth:`density_and_encoding`'s conditions)."""
         layers = self._density_rows()
         if layers is None:
             return None
@@ -211,6 +212,7 @@ class Field(nn.Module):
             MAX_LOG_DENSITY,
             min_transmittance,
             self._amx_bf16(),
+            max_kept,
         )
 
     @torch.no_grad()

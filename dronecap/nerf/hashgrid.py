@@ -121,6 +121,7 @@ class Visible(NamedTuple):
     counts: Tensor  # int64 [R] kept samples of each ray
     encoded: Tensor  # float32 [K, levels * features] their hash encodings
     unit: Tensor  # float32 [K, 3] their midpoints in the box's unit cube (what was encoded)
+    found: int  # the samples kept before a batch's cut (K without one)
 
 
 class HashGrid(torch.nn.Module):
@@ -237,7 +238,7 @@ class HashGrid(torch.nn.Module):
     def fused_visible(
         self, rays: tuple[Tensor, Tensor, Tensor], samples: tuple[Tensor, Tensor, Tensor],
         w1: Tensor, w2: Tensor, max_log_density: float, min_transmittance: float,
-        bf16: bool = False,
+        bf16: bool = False, max_kept: int = 0,
     ) -> Visible | None:  # fmt: skip
         """Compaction's pre-pass in one C++ call (None as :meth:`fused_density`): the density
         exp(clamp(w2 . relu(w1 @ encoding), +-max_log_density)) of packed samples at their
@@ -259,10 +260,11 @@ class HashGrid(torch.nn.Module):
             return None
         origins, dirs, box = (f32(t) for t in rays)
         t0, t1, ri = samples
-        return Visible(*load_extension().visible(
+        kept, found = load_extension().visible(
             origins, dirs, f32(t0), f32(t1), i64(ri), box, *self._table_args(),
-            f32(w1), f32(w2), max_log_density, min_transmittance, bf16,
-        ))  # fmt: skip
+            f32(w1), f32(w2), max_log_density, min_transmittance, bf16, max_kept,
+        )  # fmt: skip
+        return Visible(*kept, found)
 
     @torch.no_grad()
     def fused_grid_refresh(

@@ -5,10 +5,11 @@ import pytest
 import torch
 
 from dronecap.nerf.backend import kernel
-from dronecap.nerf.compaction import visible
+from dronecap.nerf.batch import RayBatch, whole_rays
+from dronecap.nerf.compaction import visible, visible_in_batch
 from dronecap.nerf.config import preset
 from dronecap.nerf.field import Field
-from dronecap.nerf.marching import march
+from dronecap.nerf.marching import Samples, march
 from dronecap.nerf.rays import ray_aabb
 from dronecap.nerf.volrend import render_packed
 
@@ -217,3 +218,30 @@ def test_the_fused_pre_pass_refuses_samples_out_of_ray_order():
     none = f.visible_samples(o, d, (empty, empty, empty.long()), 1e-4)
     assert none.ray_indices.numel() == 0 and none.encoded.shape == (0, f.encoding.out_dim)
     assert none.unit.shape == (0, 3) and torch.equal(none.counts, torch.zeros(4, dtype=torch.long))
+
+
+@pytest.mark.skipif(kernel("hashgrid", "auto") is None, reason="C++ hash-grid kernel unavailable")
+def test_the_pre_pass_cuts_the_batch_where_whole_rays_would():
+    o, d = _rays(100)
+    tn, tf, _ = ray_aabb(o, d, BOX)
+    s = march(o, d, tn, tf, 0.02, None, BOX, 1000)
+    s = Samples(s.ray_indices, s.t_starts, s.t_ends, s.counts)
+    later = s.ray_indices > 0  # and the same rays where ray 0 marched nothing
+    s0 = Samples(s.ray_indices[later], s.t_starts[later], s.t_ends[later],
+                 torch.cat([torch.zeros(1, dtype=torch.long), s.counts[1:]]))  # fmt: skip
+    f = _field()
+    with torch.no_grad():
+        f.encoding.table.uniform_(-1, 1)
+    rays = RayBatch(o, d, torch.zeros(100, 3), torch.zeros(100, 3), torch.zeros(100).long(),
+                    torch.zeros(100))  # fmt: skip
+    for samples in (s, s0):
+        whole = visible(samples, o, d, f, 1e-4)
+        for batch in (1, 5, whole.n // 3, whole.n - 1, whole.n, 10 * whole.n):
+            want_rays, want = whole_rays(rays, whole, batch)
+            cut, found = visible_in_batch(samples, o, d, f, 1e-4, batch)
+            got_rays, got = whole_rays(rays, cut, batch)
+            assert found == whole.n and got.n <= max(batch, int(whole.counts[0]))
+            assert got_rays.origins.shape == want_rays.origins.shape
+            assert torch.equal(got.counts, want.counts)
+            assert torch.equal(got.ray_indices, want.ray_indices)
+            assert torch.equal(got.encoded, want.encoded) and torch.equal(got.unit, want.unit)

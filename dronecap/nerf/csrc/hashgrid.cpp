@@ -38,6 +38,7 @@
 #include <cstdint>
 #include <cstring>
 #include <memory>
+#include <tuple>
 #include <vector>
 
 #include "amx_bf16.h"
@@ -735,6 +736,9 @@ std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
 // +-max_log_density); thickness = density * length, NaN -> 0, clamped to [0, 1e4] (the
 // reference's rules). Returns the kept samples {ray indices int64 [K], t_starts [K], t_ends
 // [K], the kept count of each ray int64 [R], encodings [K, L*F], unit-cube midpoints [K, 3]} (the training pass encodes exactly these coordinates).
+// With max_kept > 0, only the first whole rays whose kept samples fit in it (at least one ray;
+// nerf/batch.py's whole_rays, the training batch) are returned, R their count. Also returns
+// the count of samples kept before that cut.
 //
 // The rays march front to back in rounds: each round queries the next samples of every ray
 // still above the threshold (kVisibleRound in the first round, twice as many in each next one:
@@ -744,14 +748,12 @@ std::vector<torch::Tensor> density_forward(torch::Tensor x, torch::Tensor table,
 constexpr int64_t kVisibleRound = 4;
 constexpr int64_t kVisibleChunk = 4096;  // samples per chunk of rays (a thread's work item)
 
-std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor dirs,
-                                           torch::Tensor t_starts, torch::Tensor t_ends,
-                                           torch::Tensor ray_indices, torch::Tensor box,
-                                           torch::Tensor table, std::vector<int64_t> resolutions,
-                                           std::vector<int64_t> offsets, int64_t log2_hashmap,
-                                           torch::Tensor w1, torch::Tensor w2,
-                                           double max_log_density, double min_transmittance,
-                                           bool bf16) {
+std::tuple<std::vector<torch::Tensor>, int64_t> visible_forward(
+    torch::Tensor origins, torch::Tensor dirs, torch::Tensor t_starts, torch::Tensor t_ends,
+    torch::Tensor ray_indices, torch::Tensor box, torch::Tensor table,
+    std::vector<int64_t> resolutions, std::vector<int64_t> offsets, int64_t log2_hashmap,
+    torch::Tensor w1, torch::Tensor w2, double max_log_density, double min_transmittance,
+    bool bf16, int64_t max_kept) {
   const int64_t n = t_starts.numel(), out_dim = int64_t(resolutions.size()) * table.size(1);
   for (const auto* t : {&origins, &dirs, &t_starts, &t_ends, &box})
     TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == torch::kFloat32,
@@ -853,10 +855,20 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
   // kept: each ray's samples before its cut (next[r]), in order; out[r] its first kept row
   std::vector<int64_t> out(rays + 1, 0);
   for (int64_t r = 0; r < rays; ++r) out[r + 1] = out[r] + next[r] - begin[r];
-  const int64_t k = out[rays];
+  // the batch: the first whole rays whose kept samples fit in max_kept (at least one ray;
+  // nerf/batch.py's whole_rays), `runs` of the runs of samples
+  int64_t runs = rays, batch_rays = n_rays;
+  if (max_kept > 0 && out[rays] > max_kept) {
+    int64_t r = 0;
+    while (out[r + 1] <= max_kept) ++r;  // the first run that does not fit
+    const int64_t first = rip[begin[r]];  // its ray: the rays before it fit
+    batch_rays = std::max<int64_t>(first, 1);
+    runs = first >= 1 ? r : 1;  // (or that ray alone, the first of all)
+  }
+  const int64_t k = out[runs];
   auto kept_ri = torch::empty({k}, ray_indices.options());
   auto kept_t0 = torch::empty({k}, t0.options()), kept_t1 = torch::empty({k}, t0.options());
-  auto counts = torch::zeros({n_rays}, ray_indices.options());
+  auto counts = torch::zeros({batch_rays}, ray_indices.options());
   auto kept = torch::empty({k, out_dim}, t0.options());
   auto unit = torch::empty({k, 3}, t0.options());
   int64_t* kri = kept_ri.data_ptr<int64_t>();
@@ -864,7 +876,7 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
   float *kp = kept.data_ptr<float>(), *up = unit.data_ptr<float>();
   float *k0 = kept_t0.data_ptr<float>(), *k1 = kept_t1.data_ptr<float>();
 #pragma omp parallel for schedule(static) num_threads(at::get_num_threads()) if (k > 2048)
-  for (int64_t r = 0; r < rays; ++r) {
+  for (int64_t r = 0; r < runs; ++r) {
     if (begin[r] < begin[r + 1]) cp[rip[begin[r]]] = next[r] - begin[r];
     for (int64_t i = begin[r], j = out[r]; i < next[r]; ++i, ++j) {
       kri[j] = rip[i], k0[j] = t0p[i], k1[j] = t1p[i];
@@ -872,7 +884,7 @@ std::vector<torch::Tensor> visible_forward(torch::Tensor origins, torch::Tensor 
       std::memcpy(up + 3 * j, xqp + 3 * rowp[i], 12);
     }
   }
-  return {kept_ri, kept_t0, kept_t1, counts, kept, unit};
+  return {{kept_ri, kept_t0, kept_t1, counts, kept, unit}, out[rays]};
 }
 
 // One occupancy-grid update after its random draws (nerf/occupancy.py's update): the optical
@@ -958,8 +970,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::call_guard<py::gil_scoped_release>());
   m.def("visible", &visible_forward,
         "compaction's pre-pass: (origins, dirs, t_starts, t_ends, ray_indices, box, table, ..., "
-        "w1, w2, max_log_density, min_transmittance, bf16) -> the kept samples' (ray indices, "
-        "t_starts, t_ends, counts per ray, encodings, unit points)",
+        "w1, w2, max_log_density, min_transmittance, bf16, max_kept) -> the kept samples' (ray "
+        "indices, t_starts, t_ends, counts per ray, encodings, unit points), and their count "
+        "before the batch's cut",
         py::call_guard<py::gil_scoped_release>());
   m.def("backward", &hash_backward, "hash encoding backward: scatter-add of grad_out into the table",
         py::call_guard<py::gil_scoped_release>());
