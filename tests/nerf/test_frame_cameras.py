@@ -10,7 +10,7 @@ import torch
 
 from dronecap.datasets.format import Dataset
 from dronecap.nerf.backend import kernel
-from dronecap.nerf.batch import RayBatch, draw_rays
+from dronecap.nerf.batch import RayBatch, draw_rays, pixel_draws
 from dronecap.nerf.config import preset
 from dronecap.nerf.rays import camera_rays, direction_tables, frame_cameras, frame_rays
 from dronecap.nerf.trainer import Trainer
@@ -89,3 +89,18 @@ def test_kernel_draws_the_rays_and_targets_of_the_torch_reference(make_cube, wit
             args[0], no_alpha, args[2].float(), tables, index, frame, zero, zero,
             torch.zeros(1, 3), 1.0, 1.0, 2.0,
         )  # fmt: skip
+
+
+def test_pixel_draws_are_uniform_and_follow_the_seed() -> None:
+    which, u, v, bg = pixel_draws(12345, 100, 8, 200_000, (120, 160, 3), True)
+    frames = which.unique()
+    assert len(frames) <= 8 and int(frames.min()) >= 0 and int(frames.max()) < 100
+    for draws, size in ((u, 160), (v, 120)):
+        counts = torch.bincount(draws, minlength=size).float()
+        assert counts.numel() == size and counts.min() > 0.85 * counts.mean()  # ~1250 each
+    assert 0.0 <= float(bg.min()) and float(bg.max()) < 1.0 and abs(float(bg.mean()) - 0.5) < 0.01
+    again = pixel_draws(12345, 100, 8, 200_000, (120, 160, 3), True)
+    other = pixel_draws(12346, 100, 8, 200_000, (120, 160, 3), True)
+    assert all(torch.equal(a, b) for a, b in zip((which, u, v, bg), again, strict=True))
+    assert not torch.equal(u, other[1])
+    assert pixel_draws(1, 100, 8, 10, (120, 160, 3), False)[3] is None

@@ -287,6 +287,31 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor g, torch::Tensor sig
   return {d_sigma, d_rgb, d_bg};
 }
 
+namespace {
+
+// splitmix64: the random number of index i of a stream (seed), so that a draw does not depend
+// on which thread makes it.
+inline uint64_t mix(uint64_t seed, uint64_t i) {
+  uint64_t z = seed + (i + 1) * 0x9e3779b97f4a7c15ull;
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  return z ^ (z >> 31);
+}
+
+// Uniform in [0, k) (the high word of a 64 x 64-bit product: bias below k / 2^64).
+inline int64_t below(uint64_t r, int64_t k) {
+  return int64_t((static_cast<unsigned __int128>(r) * uint64_t(k)) >> 64);
+}
+
+// Uniform in [0, k) for k < 2^31 from the high 32 bits (bias below k / 2^32): what torch's int64
+// ops reproduce (nerf/batch.py's pixel draws).
+inline int64_t below32(uint64_t r, int64_t k) { return int64_t(((r >> 32) * uint64_t(k)) >> 32); }
+
+// Uniform in [0, 1) on the 2^-24 grid (float32 exact).
+inline float unit24(uint64_t r) { return float(uint32_t(r >> 40)) * 0x1p-24f; }
+
+}  // namespace
+
 // The rays and targets of R drawn pixels (pixel p of frame which[p] at column u[p], row v[p]):
 // origins [R, 3] = the frame's camera centre, dirs [R, 3] = its rotation times the camera's
 // undistorted direction through the pixel (tables [K, H, W, 3], camera_index [N] -> K),
@@ -358,6 +383,48 @@ std::vector<torch::Tensor> draw(torch::Tensor images, torch::Tensor alpha, torch
   }
   TORCH_CHECK(!bad, "a drawn pixel, frame or camera index is out of range");
   return {origins, dirs, target, radius};
+}
+
+// `draw` of random pixels: n_rays pixels (uniform frame among `k_frames` frames drawn uniformly
+// from the N, uniform column and row) and, with alpha, a uniform background colour per ray,
+// else `background` [C]; from the splitmix64 stream `seed`: frame j from number j, ray p's
+// frame, column and row from numbers k_frames + 3p + 0, 1, 2, its background channel ch from
+// number k_frames + 3 n_rays + p C + ch (nerf/batch.py's `pixel_draws`, the same in torch).
+// Returns draw's {origins, dirs, target, radius} and {frame int64 [R], background [R, C]}.
+std::vector<torch::Tensor> draw_random(torch::Tensor images, torch::Tensor alpha,
+                                       torch::Tensor poses, torch::Tensor tables,
+                                       torch::Tensor camera_index, int64_t seed, int64_t n_rays,
+                                       int64_t k_frames, torch::Tensor background, double cx,
+                                       double cy, double corner) {
+  TORCH_CHECK(images.dim() == 4 && n_rays >= 0 && k_frames >= 1, "images [N, H, W, C], k >= 1");
+  const int64_t n = images.size(0), h = images.size(1), w = images.size(2), c = images.size(3);
+  TORCH_CHECK(n >= 1 && h >= 1 && w >= 1, "no images to draw from");
+  TORCH_CHECK(background.scalar_type() == torch::kFloat32 && background.numel() == c,
+              "background must be float32 [C]");
+  const uint64_t s = uint64_t(seed);
+  const auto i64 = torch::dtype(torch::kInt64);
+  auto which = torch::empty({n_rays}, i64), u = torch::empty({n_rays}, i64);
+  auto v = torch::empty({n_rays}, i64);
+  auto bg = torch::empty({n_rays, c}, torch::dtype(torch::kFloat32));
+  std::vector<int64_t> frames(static_cast<size_t>(k_frames));
+  for (int64_t j = 0; j < k_frames; ++j) frames[size_t(j)] = below32(mix(s, uint64_t(j)), n);
+  int64_t *wp = which.data_ptr<int64_t>(), *up = u.data_ptr<int64_t>(), *vp = v.data_ptr<int64_t>();
+  float* bp = bg.data_ptr<float>();
+  const float* fixed = background.contiguous().data_ptr<float>();
+  const bool random_bg = alpha.numel() > 0;
+  const uint64_t base = uint64_t(k_frames), bg_base = base + 3 * uint64_t(n_rays);
+  for (int64_t p = 0; p < n_rays; ++p) {
+    const uint64_t i = base + 3 * uint64_t(p);
+    wp[p] = frames[size_t(below32(mix(s, i), k_frames))];
+    up[p] = below32(mix(s, i + 1), w);
+    vp[p] = below32(mix(s, i + 2), h);
+    for (int64_t ch = 0; ch < c; ++ch)
+      bp[p * c + ch] = random_bg ? unit24(mix(s, bg_base + uint64_t(p * c + ch))) : fixed[ch];
+  }
+  auto out = draw(images, alpha, poses, tables, camera_index, which, u, v, bg, cx, cy, corner);
+  out.push_back(which);
+  out.push_back(bg);
+  return out;
 }
 
 // Real SH basis of bands 0 .. degree - 1 at unit directions dirs [N, 3] -> [N, degree^2]: the
@@ -451,23 +518,6 @@ std::vector<torch::Tensor> huber(torch::Tensor pred, torch::Tensor target, int64
   return {torch::full({}, float(sum) / div, p.options()), grad};
 }
 
-namespace {
-
-// splitmix64: the random number of index i of a stream (seed), so that a draw does not depend
-// on which thread makes it.
-inline uint64_t mix(uint64_t seed, uint64_t i) {
-  uint64_t z = seed + (i + 1) * 0x9e3779b97f4a7c15ull;
-  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
-  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
-  return z ^ (z >> 31);
-}
-
-// Uniform in [0, k) (the high word of a 64 x 64-bit product: bias below k / 2^64).
-inline int64_t below(uint64_t r, int64_t k) {
-  return int64_t((static_cast<unsigned __int128>(r) * uint64_t(k)) >> 64);
-}
-
-}  // namespace
 
 // The cells an occupancy-grid update samples and a random point in each (nerf/occupancy.py's
 // draws, with this kernel's own random numbers from `seed`): in warm-up every cell of `pool`
@@ -512,7 +562,7 @@ std::vector<torch::Tensor> grid_draws(torch::Tensor occupied, torch::Tensor pool
 #pragma omp parallel for schedule(static) num_threads(at::get_num_threads()) if (m > 16384)
   for (int64_t i = 0; i < pairs; ++i) {
     const uint64_t r = mix(js, uint64_t(i));
-    jp[2 * i] = float(uint32_t(r >> 40)) * 0x1p-24f;
+    jp[2 * i] = unit24(r);
     jp[2 * i + 1] = float(uint32_t(r) >> 8) * 0x1p-24f;
   }
   return {cells, numbers.narrow(0, 0, 3 * m).view({m, 3})};
@@ -527,6 +577,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_backward", &composite_backward, "gradients of composite",
         py::call_guard<py::gil_scoped_release>());
   m.def("draw", &draw, "rays and target colours of drawn pixels",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("draw_random", &draw_random, "rays and target colours of random pixels",
         py::call_guard<py::gil_scoped_release>());
   m.def("sh_encode", &sh_encode, "real SH basis of unit directions",
         py::call_guard<py::gil_scoped_release>());
