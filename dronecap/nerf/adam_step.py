@@ -42,9 +42,10 @@ def step(optimizer: torch.optim.Adam, ext=None) -> bool:
         return True
     params = [p for ps in groups for p in ps]
     states = [optimizer.state[p] for p in params]
-    _count_step(optimizer, states)
     moments = [st[k] for st in states for k in ("exp_avg", "exp_avg_sq")]
-    if ext is not None and all(_flat32(t) for t in (*params, *moments)):
+    kernel = ext is not None and all(_flat32(t) for t in (*params, *moments))
+    _count_step(optimizer, states, add=not kernel)  # the kernel counts them itself
+    if kernel:
         options = [(g["lr"], *g["betas"], g["weight_decay"], g["eps"])
                    for g, ps in zip(optimizer.param_groups, groups, strict=True)
                    for _ in ps]  # fmt: skip
@@ -88,12 +89,13 @@ def _plain(group: dict) -> bool:
     return bool(group.get("fused")) and not any(group.get(k) for k in off)
 
 
-def _count_step(optimizer: torch.optim.Adam, stepping: list[dict]) -> None:
-    """Add 1 to the step count in each of the ``stepping`` parameters' states. While every
-    parameter of ``optimizer`` steps, and their counts are equal, they share one count tensor
-    (linked here on first sight, e.g. after a checkpoint load copied them apart), so that this
-    is one scalar op instead of one per parameter; a step that leaves some out separates
-    them again."""
+def _count_step(optimizer: torch.optim.Adam, stepping: list[dict], add: bool = True) -> None:
+    """Add 1 to the step count in each of the ``stepping`` parameters' states (``add``; else
+    only link or separate them, for the kernel that adds). While every parameter of
+    ``optimizer`` steps, and their counts are equal, they share one count tensor (linked here
+    on first sight, e.g. after a checkpoint load copied them apart), so that this is one
+    scalar op instead of one per parameter; a step that leaves some out separates them
+    again."""
     states = [optimizer.state.get(p, {}) for g in optimizer.param_groups for p in g["params"]]
     first = stepping[0]["step"]
     shared = all(s["step"] is first for s in stepping)  # linked already: no comparisons
@@ -102,10 +104,12 @@ def _count_step(optimizer: torch.optim.Adam, stepping: list[dict]) -> None:
     ):
         for st in stepping:
             st["step"] = first
-        first.add_(1)
+        if add:
+            first.add_(1)
         return
     if len({id(st["step"]) for st in states if "step" in st}) < len(states):
         for st in states:  # some sit this step out: each its own count again
             if "step" in st:
                 st["step"] = st["step"].clone()
-    torch._foreach_add_([st["step"] for st in stepping], 1)
+    if add:
+        torch._foreach_add_([st["step"] for st in stepping], 1)

@@ -81,8 +81,9 @@ bool all_finite(std::vector<torch::Tensor> tensors) {
 }
 
 // One Adam update of params[i] from grads[i] with its moments exp_avgs[i], exp_avg_sqs[i]
-// (all float32, the same shape) at step count steps[i] (a float32 scalar tensor, already
-// counting this step), learning rate lrs[i], betas (beta1s[i], beta2s[i]), L2 weight decay
+// (all float32, the same shape) at step count steps[i] (a float32 scalar tensor, counted up
+// by one here first; tensors shared between parameters once), learning rate lrs[i], betas
+// (beta1s[i], beta2s[i]), L2 weight decay
 // wds[i] and eps[i].
 void adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> grads,
                std::vector<torch::Tensor> exp_avgs, std::vector<torch::Tensor> exp_avg_sqs,
@@ -101,11 +102,14 @@ void adam_step(std::vector<torch::Tensor> params, std::vector<torch::Tensor> gra
   // sqrt(1 - beta2^t), 1 - beta1, 1 - beta2
   std::vector<float> size(n), root(n), c1(n), c2(n), b2(n), e(n), wd(n);
   for (size_t i = 0; i < n; ++i) {
-    TORCH_CHECK(steps[i].numel() == 1 && steps[i].device().is_cpu(),
-                "a step count is a scalar CPU tensor");
-    const double t = steps[i].scalar_type() == torch::kFloat32  // torch's (no dispatch to read)
-                         ? double(*steps[i].data_ptr<float>())
-                         : steps[i].item<double>();
+    TORCH_CHECK(steps[i].numel() == 1 && steps[i].device().is_cpu() &&
+                    steps[i].scalar_type() == torch::kFloat32,
+                "a step count is a float32 scalar CPU tensor (torch's)");
+    float* count = steps[i].data_ptr<float>();  // no dispatched op to read or count it
+    bool seen = false;
+    for (size_t j = 0; j < i; ++j) seen = seen || steps[j].data_ptr<float>() == count;
+    if (!seen) *count += 1.0f;
+    const double t = double(*count);
     size[i] = float(lrs[i] / (1 - std::pow(beta1s[i], t)));
     root[i] = float(std::sqrt(1 - std::pow(beta2s[i], t)));
     c1[i] = float(1 - beta1s[i]), c2[i] = float(1 - beta2s[i]), b2[i] = float(beta2s[i]);
