@@ -90,6 +90,7 @@ class Field(nn.Module):
         self.register_buffer("aabb_min", a[0].clone(), persistent=False)
         self.register_buffer("aabb_size", (a[1] - a[0]).clone(), persistent=False)
         self._fused_mlp: bool | None = None  # decided by prepare_kernels (builds them)
+        self._weights: list[Tensor] | None = None  # the fused MLPs' five weights, once listed
 
     def _run(self, mlp: nn.Sequential, x: Tensor, outputs: int | None = None) -> Tensor:
         """Apply ``mlp`` to ``x`` [N, n_in] float32 -> [N, n_out] float32 (only the first
@@ -272,8 +273,9 @@ class Field(nn.Module):
         it multiplies in bf16, the density logit's clamp); None where the torch layers do."""
         if not self.prepare_kernels():
             return None
-        weights = mlp_weights(self.density_mlp, self.color_mlp)
-        return weights, self._amx_bf16(), float(MAX_LOG_DENSITY)
+        if self._weights is None:  # the same Parameter objects for the module's life
+            self._weights = mlp_weights(self.density_mlp, self.color_mlp)
+        return self._weights, self._amx_bf16(), float(MAX_LOG_DENSITY)
 
     def _amx_bf16(self) -> bool:
         """Whether the MLPs multiply in bf16 and the fused kernel can do so on AMX tiles."""

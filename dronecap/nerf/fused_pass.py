@@ -50,7 +50,9 @@ def train_tile(
     weights, bf16, lim = mlp
     t0, t1, ri = f32(s.t_starts), f32(s.t_ends), i64(s.ray_indices)
     behind = field.behind(rays.dirs, rays.bg)  # with autograd for a far field
-    bg = f32(behind.detach().expand(rays.dirs.shape[0], -1))
+    n_rays_tile = rays.dirs.shape[0]
+    fixed = not behind.requires_grad and behind.shape == (n_rays_tile, rays.target.shape[1])
+    bg = f32(behind if fixed else behind.detach().expand(n_rays_tile, -1))
     with torch.no_grad():
         dir_enc = field.dir_encoding(rays.dirs)
         outputs, args = mlp_kernel.forward(s.encoded, dir_enc, ri, weights, bf16, lim)
@@ -76,7 +78,7 @@ def train_tile(
             _add_grad(w, gw)
     if behind.requires_grad:  # the far field's colours
         behind.backward(d_bg if behind.ndim == 2 else d_bg.sum(0))
-    return float(loss.detach())
+    return float(loss.detach() if loss.requires_grad else loss)
 
 
 def _add_grad(p: Tensor, g: Tensor | None) -> None:
