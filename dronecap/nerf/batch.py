@@ -4,7 +4,7 @@
 returns their rays through the camera model, their target colours (composited on a random
 background when the images have alpha) and what the photometric model needs (frame, radius).
 The pixels come from a splitmix64 stream seeded by one number off the trainer's generator
-(:func:`pixel_draws`), which the C++ kernel and torch ops reproduce bit for bit.
+(:func:`.draws.pixel_draws`), which the C++ kernel and torch ops reproduce bit for bit.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import torch
 from dronecap.camera import Camera
 
 from .backend import kernel
+from .draws import pixel_draws, seed_from
 from .kernel_args import f32
 from .marching import Samples
 from .photometric import corner_distance_sq, normalized_radius
@@ -64,13 +65,13 @@ def draw_rays(
         background: [C] colour in [0, 1] for frames without alpha.
         backend: the marching kernel's backend (``nerf.backend``): on the CPU with the C++
             kernel, one call draws the pixels and casts their rays (~0.1 ms of tensor ops less
-            per lego step); else :func:`pixel_draws` and torch ops. Both draw the same pixels
+            per lego step); else :func:`.draws.pixel_draws` and torch ops. Both draw the same pixels
             from one number off ``generator``.
     """
     dev = images.device
     n_img, h, w, c = images.shape
     k = min(images_per_step, n_img)
-    seed = int(torch.randint(2**62, (1,), generator=generator, device=generator.device))
+    seed = seed_from(generator)
     uint8 = images.dtype == torch.uint8 and (alpha is None or alpha.dtype == torch.uint8)
     ext = kernel("march", backend) if dev.type == "cpu" and uint8 else None
     if ext is None:
@@ -93,56 +94,12 @@ def draw_rays(
 
 
 _NO_ALPHA = torch.zeros(0, dtype=torch.uint8)
-# splitmix64's constants as int64 (torch has no uint64 arithmetic; the bits are the same)
-_GOLDEN, _MIX1, _MIX2 = (c - (1 << 64) for c in (0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9,
-                                                 0x94D049BB133111EB))  # fmt: skip
 
 
 @functools.lru_cache(maxsize=8)
 def _background(colour: tuple[float, ...]) -> torch.Tensor:
     """A fixed background colour as the kernel takes it (float32 [C], made once)."""
     return torch.tensor(colour, dtype=torch.float32)
-
-
-def pixel_draws(
-    seed: int, n_img: int, k: int, n_rays: int, shape: tuple[int, int, int], random_bg: bool
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """The random pixels of :func:`draw_rays` from ``seed``, as the kernel's ``draw_random``
-    draws them, bit for bit: ``k`` frames uniformly among ``n_img``, then per ray a frame
-    uniformly among those, a column and a row (``shape`` = (H, W, C)), and with ``random_bg``
-    a uniform background colour (else None); all from one splitmix64 stream (CPU tensors).
-
-    Returns:
-        frame, column, row int64 [R]; background float32 [R, C] or None.
-    """
-    h, w, c = shape
-    frames = _below32(_mix(seed, torch.arange(k)), n_img)
-    i = k + 3 * torch.arange(n_rays)
-    which = frames[_below32(_mix(seed, i), k)]
-    u, v = _below32(_mix(seed, i + 1), w), _below32(_mix(seed, i + 2), h)
-    bg = None
-    if random_bg:
-        r = _mix(seed, k + 3 * n_rays + torch.arange(n_rays * c))
-        bg = (_shifted(r, 40).float() * 2.0**-24).reshape(n_rays, c)
-    return which, u, v, bg
-
-
-def _mix(seed: int, index: torch.Tensor) -> torch.Tensor:
-    """splitmix64 of numbers ``index`` (int64) of stream ``seed``, in int64 bits."""
-    z = (index + 1) * _GOLDEN + seed
-    z = (z ^ _shifted(z, 30)) * _MIX1
-    z = (z ^ _shifted(z, 27)) * _MIX2
-    return z ^ _shifted(z, 31)
-
-
-def _shifted(z: torch.Tensor, bits: int) -> torch.Tensor:
-    """The logical right shift of int64 bits (torch's ``>>`` is arithmetic)."""
-    return (z >> bits) & ((1 << (64 - bits)) - 1)
-
-
-def _below32(r: torch.Tensor, k: int) -> torch.Tensor:
-    """Uniform in [0, k) from the high 32 bits of ``r`` (k < 2^31)."""
-    return (_shifted(r, 32) * k) >> 32
 
 
 def _gather(images, alpha, poses, cameras, camera_index, which, u, v, bg) -> RayBatch:

@@ -12,10 +12,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import Tensor
 
+from .draws import grid_draws, seed_from
 from .grid_schedule import GridConfig, due, grid_config
 
 # the schedule lives in grid_schedule
@@ -107,8 +107,8 @@ def update(
             :meth:`~nerf.field.Field.grid_refresh`: ~4 ms of tensor ops fewer per update on
             lego), or None.
         draws: the marching kernel (``nerf.backend.kernel("march")``), whose ``grid_draws``
-            draws the cells and points from one seed off ``generator`` (~1.3 of ~5.4 ms per
-            lego update less than torch's draws; other random numbers, the same laws), or None.
+            draws the cells and points (0.3 ms per lego update against ~1.4 for torch ops), or
+            None (:func:`.draws.grid_draws`, the same draws by torch ops).
     """
     cells, jitter, pool = _draw(cfg, state, step, generator, draws)
     fused = None if refresh is None else refresh(
@@ -131,47 +131,23 @@ def _draw(
     cfg: GridConfig, state: GridState, step: int, generator: torch.Generator, ext
 ) -> tuple[Tensor, Tensor, Tensor | None]:
     """The cells [M] an update at ``step`` samples (:func:`update`), a uniform point in each
-    (jitter [M, 3] in [0, 1)) and the allowed cells' indices (None: every cell); by the
-    kernel ``ext`` when given and on the CPU, else by torch."""
+    (jitter [M, 3] in [0, 1)) and the allowed cells' indices (None: every cell): the draws of
+    :func:`.draws.grid_draws` from one seed off ``generator``, by the kernel ``ext`` when given
+    (and the grid is on the CPU), else by torch ops; the same either way."""
     pool = state.pool
     if state.allowed is not None and pool is None:  # a state built without restrict()
         pool = state.allowed.nonzero().squeeze(1)
     warm = step < cfg.warmup
     quarter = (cfg.res**3 if pool is None else pool.numel()) // 4
+    seed = seed_from(generator)
     if ext is not None and state.occupied.device.type == "cpu":
-        seed = int(torch.randint(2**62, (1,), generator=generator))
         empty = torch.zeros(0, dtype=torch.int64)
         cells, jitter = ext.grid_draws(state.occupied, empty if pool is None else pool, quarter,
                                        warm, seed)  # fmt: skip
         return cells, jitter, pool
-    cells = _draw_cells(cfg, state, warm, quarter, pool, generator)
-    jitter = torch.rand((cells.numel(), 3), generator=generator, device=cells.device)
-    return cells, jitter, pool
-
-
-def _draw_cells(
-    cfg: GridConfig, state: GridState, warm: bool, quarter: int, pool: Tensor | None,
-    generator: torch.Generator,
-) -> Tensor:  # fmt: skip
-    """:func:`_draw`'s cells by torch."""
-    n = cfg.res**3
+    cells, jitter = grid_draws(state.occupied, pool, quarter, warm, seed)
     dev = state.density.device
-    if warm:
-        return torch.arange(n, device=dev) if pool is None else pool
-    uniform = torch.randint(n if pool is None else max(pool.numel(), 1), (quarter,),
-                            generator=generator, device=dev)  # fmt: skip
-    uniform = uniform if pool is None else pool[uniform]
-    occ = _flat_nonzero(state.occupied)
-    pick = torch.randint(max(occ.numel(), 1), (quarter,), generator=generator, device=dev)
-    return torch.cat([uniform, occ[pick] if occ.numel() else occ])
-
-
-def _flat_nonzero(mask: Tensor) -> Tensor:
-    """The indices int64 [K] where the bool [N] ``mask`` is set, in order (numpy's on the CPU:
-    half the time of torch's ``nonzero`` for a 64^3 grid, ~0.2 of ~5 ms per lego update)."""
-    if mask.device.type != "cpu":
-        return mask.nonzero().squeeze(1)
-    return torch.from_numpy(np.flatnonzero(mask.numpy()))
+    return cells.to(dev), jitter.to(dev), pool
 
 
 def to_numpy(state: GridState) -> dict:

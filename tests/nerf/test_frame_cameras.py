@@ -10,8 +10,9 @@ import torch
 
 from dronecap.datasets.format import Dataset
 from dronecap.nerf.backend import kernel
-from dronecap.nerf.batch import RayBatch, draw_rays, pixel_draws
+from dronecap.nerf.batch import RayBatch, draw_rays
 from dronecap.nerf.config import preset
+from dronecap.nerf.draws import pixel_draws
 from dronecap.nerf.rays import camera_rays, direction_tables, frame_cameras, frame_rays
 from dronecap.nerf.trainer import Trainer
 

@@ -9,6 +9,7 @@ from dronecap.nerf import occupancy
 from dronecap.nerf.backend import kernel
 from dronecap.nerf.batch import RayBatch, whole_rays
 from dronecap.nerf.config import preset
+from dronecap.nerf.draws import grid_draws
 from dronecap.nerf.field import Field
 from dronecap.nerf.marching import march
 from dronecap.nerf.rays import ray_aabb
@@ -177,6 +178,19 @@ def test_the_kernels_grid_draws_follow_the_update_rules():
     cells, _ = draws(torch.zeros(16**3, dtype=torch.bool), torch.zeros(0, dtype=torch.int64),
                      100, False, 3)  # fmt: skip
     assert cells.shape == (100,) and int(cells.max()) < 16**3  # none occupied: uniform only
+
+
+@pytest.mark.parametrize("warm", [True, False])
+@pytest.mark.parametrize("hull", [False, True])
+def test_torch_ops_draw_the_kernels_grid_cells_and_points(warm, hull):
+    draws = _draws()
+    occupied = torch.rand(32**3, generator=torch.Generator().manual_seed(1)) < 0.1
+    pool = torch.arange(0, 32**3, 5) if hull else None
+    empty = torch.zeros(0, dtype=torch.int64)
+    for occ in (occupied, torch.zeros_like(occupied)):  # and none occupied
+        got = draws(occ, empty if pool is None else pool, 1500, warm, 2**61 + 12345)
+        want = grid_draws(occ, pool, 1500, warm, 2**61 + 12345)
+        assert all(torch.equal(a, b) for a, b in zip(got, want, strict=True))
 
 
 def test_the_kernels_grid_draws_do_not_depend_on_the_threads():

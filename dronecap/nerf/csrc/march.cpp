@@ -298,13 +298,8 @@ inline uint64_t mix(uint64_t seed, uint64_t i) {
   return z ^ (z >> 31);
 }
 
-// Uniform in [0, k) (the high word of a 64 x 64-bit product: bias below k / 2^64).
-inline int64_t below(uint64_t r, int64_t k) {
-  return int64_t((static_cast<unsigned __int128>(r) * uint64_t(k)) >> 64);
-}
-
 // Uniform in [0, k) for k < 2^31 from the high 32 bits (bias below k / 2^32): what torch's int64
-// ops reproduce (nerf/batch.py's pixel draws).
+// ops reproduce (nerf/draws.py).
 inline int64_t below32(uint64_t r, int64_t k) { return int64_t(((r >> 32) * uint64_t(k)) >> 32); }
 
 // Uniform in [0, 1) on the 2^-24 grid (float32 exact).
@@ -389,7 +384,7 @@ std::vector<torch::Tensor> draw(torch::Tensor images, torch::Tensor alpha, torch
 // from the N, uniform column and row) and, with alpha, a uniform background colour per ray,
 // else `background` [C]; from the splitmix64 stream `seed`: frame j from number j, ray p's
 // frame, column and row from numbers k_frames + 3p + 0, 1, 2, its background channel ch from
-// number k_frames + 3 n_rays + p C + ch (nerf/batch.py's `pixel_draws`, the same in torch).
+// number k_frames + 3 n_rays + p C + ch (nerf/draws.py's `pixel_draws`, the same in torch).
 // Returns draw's {origins, dirs, target, radius} and {frame int64 [R], background [R, C]}.
 std::vector<torch::Tensor> draw_random(torch::Tensor images, torch::Tensor alpha,
                                        torch::Tensor poses, torch::Tensor tables,
@@ -519,8 +514,8 @@ std::vector<torch::Tensor> huber(torch::Tensor pred, torch::Tensor target, int64
 }
 
 
-// The cells an occupancy-grid update samples and a random point in each (nerf/occupancy.py's
-// draws, with this kernel's own random numbers from `seed`): in warm-up every cell of `pool`
+// The cells an occupancy-grid update samples and a random point in each (nerf/draws.py's
+// grid_draws, bit for bit, from the splitmix64 stream `seed`): in warm-up every cell of `pool`
 // (int64 [A], the allowed cells; empty: every cell of the grid); after it, `quarter` cells
 // uniformly from the pool (or the grid) and `quarter` uniformly from the occupied ones
 // (occupied: bool [res^3]; none when no cell is). Returns {cells int64 [M], jitter float32
@@ -549,9 +544,9 @@ std::vector<torch::Tensor> grid_draws(torch::Tensor occupied, torch::Tensor pool
     int64_t* cp = cells.data_ptr<int64_t>();
 #pragma omp parallel for schedule(static) num_threads(at::get_num_threads()) if (quarter > 8192)
     for (int64_t i = 0; i < quarter; ++i) {
-      const int64_t u = below(mix(s, uint64_t(i)), std::max<int64_t>(span, 1));
+      const int64_t u = below32(mix(s, uint64_t(i)), std::max<int64_t>(span, 1));
       cp[i] = a ? pp[u] : u;
-      if (k) cp[quarter + i] = occ[below(mix(s, uint64_t(quarter + i)), k)];
+      if (k) cp[quarter + i] = occ[below32(mix(s, uint64_t(quarter + i)), k)];
     }
   }
   const int64_t m = cells.numel();
